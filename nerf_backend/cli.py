@@ -1,0 +1,109 @@
+"""``python -m nerf_backend {train,render,eval}``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from .errors import NerfError
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive whole number, got {text}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .config import PRESETS
+
+    parser = argparse.ArgumentParser(prog="python -m nerf_backend", description=__doc__)
+    parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    train = sub.add_parser("train", help="train a NeRF on a dataset in the nerf_synthetic layout")
+    train.add_argument("dataset", type=Path)
+    train.add_argument("--preset", choices=sorted(PRESETS), default=None,
+                       help="model/sampling/optimiser preset (default: preview; on --resume: the run's)")
+    train.add_argument("--out", type=Path, required=True, help="the run folder")
+    train.add_argument("--iters", type=_positive_int, default=None, help="total iterations for the run")
+    train.add_argument("--max-seconds", type=_positive_float, default=None, help="total training seconds for the run")
+    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
+    train.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    train.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
+    train.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    for name, help_text in (("render", "render a split's views with a trained run"),
+                            ("eval", "render if needed, then score a split against its ground truth")):
+        cmd = sub.add_parser(name, help=help_text)
+        cmd.add_argument("run", type=Path)
+        cmd.add_argument("--split", default="test")
+        cmd.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
+        cmd.add_argument("--chunk", type=_positive_int, default=4096, help="rays per forward pass")
+        cmd.add_argument("--no-progress", action="store_true")
+    return parser
+
+
+def _run(args: argparse.Namespace) -> int:
+    from .devices import resolve_device
+    from .run_folder import RunFolder
+
+    if args.command == "train":
+        from .trainer import TrainOptions, train
+
+        summary = train(TrainOptions(
+            dataset=args.dataset, run=args.out, preset=args.preset, iterations=args.iters,
+            max_seconds=args.max_seconds, seed=args.seed, device=args.device, resume=args.resume,
+            overwrite=args.overwrite, progress=not args.no_progress,
+        ))
+        val = f", validation PSNR {summary.val_psnr:.2f} dB" if summary.val_psnr is not None else ""
+        print(f"trained {summary.iteration} iterations in {summary.train_seconds:.1f} s "
+              f"(stopped: {summary.stop_reason}){val}; run: {args.out}")
+        return 0
+
+    from .inference import render_split, renders_are_current
+
+    run = RunFolder(args.run)
+    device = resolve_device(args.device)
+    if args.command == "render":
+        out = render_split(run, args.split, device, chunk=args.chunk, progress=not args.no_progress)
+        print(f"rendered {args.split} views into {out}")
+        return 0
+
+    from .dataset import load_split
+    from .evaluate import score_renders
+    from .files import write_json
+
+    if not renders_are_current(run, args.split):
+        render_split(run, args.split, device, chunk=args.chunk, progress=not args.no_progress)
+    stored = run.read_config()
+    metrics = score_renders(load_split(stored["dataset"], args.split), run.renders_dir(args.split))
+    write_json(run.path / "metrics.json", metrics)
+    print(f"{args.split}: mean PSNR {metrics['psnr']:.2f} dB, mean SSIM {metrics['ssim']:.4f} "
+          f"over {metrics['views']} views; written {run.path / 'metrics.json'}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return _run(args)
+    except NerfError as exc:
+        if args.debug:
+            raise
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,25 @@
+"""Choosing the compute device: CUDA, then Apple's MPS, then the CPU."""
+
+from __future__ import annotations
+
+import torch
+
+from .errors import NerfError
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` picks the fastest present; naming an absent device is an error, not a
+    silent fallback, so a user never trains on the CPU believing it is the GPU."""
+    if name == "auto":
+        if torch.cuda.is_available():
+            return torch.device("cuda")
+        if getattr(torch.backends, "mps", None) is not None and torch.backends.mps.is_available():
+            return torch.device("mps")
+        return torch.device("cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise NerfError("--device cuda: this torch build sees no CUDA device")
+    if name == "mps" and not (getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
+        raise NerfError("--device mps: Apple's Metal (MPS) is not available here")
+    if name not in ("cpu", "cuda", "mps"):
+        raise NerfError(f"--device {name}: choose auto, cpu, cuda or mps")
+    return torch.device(name)

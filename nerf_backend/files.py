@@ -1,0 +1,63 @@
+"""File I/O that never leaves a half-written file: write to a temporary name beside the
+target, flush to disk, then rename over it (atomic on POSIX and Windows)."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Callable
+
+import imageio.v3 as iio
+import numpy as np
+
+
+def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
+    """Call ``write(tmp_path)`` then atomically move ``tmp_path`` to ``path``.
+
+    If ``write`` fails (full disk, crash), ``path`` keeps its previous content and the
+    temporary file is removed.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        write(tmp)
+        with open(tmp, "rb+") as handle:
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_json(path: Path, data: Any) -> None:
+    def _write(tmp: Path) -> None:
+        tmp.write_text(json.dumps(data, indent=2) + "\n")
+
+    atomic_write(path, _write)
+
+
+def write_png(path: Path, image: np.ndarray) -> None:
+    """Write a float image in [0, 1] (H×W×C) as an 8-bit PNG, rounding to nearest."""
+    pixels = np.clip(np.round(np.asarray(image, dtype=np.float32) * 255.0), 0, 255).astype(np.uint8)
+    atomic_write(path, lambda tmp: iio.imwrite(tmp, pixels, extension=".png"))
+
+
+def write_exr(path: Path, channels: dict[str, np.ndarray]) -> None:
+    """Write float32 single-channel images (H×W each) to one EXR file."""
+    import OpenEXR  # imported here: only rendering depth/opacity needs it
+
+    data = {name: np.ascontiguousarray(values, dtype=np.float32) for name, values in channels.items()}
+    header = {"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION}
+    atomic_write(path, lambda tmp: OpenEXR.File(header, data).write(str(tmp)))
+
+
+def read_exr(path: Path) -> dict[str, np.ndarray]:
+    import OpenEXR
+
+    with OpenEXR.File(str(path)) as exr:
+        return {name: np.array(channel.pixels) for name, channel in exr.channels().items()}

@@ -1,0 +1,69 @@
+"""Using a trained run: load its model and render a split's views into RUN/renders/SPLIT."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from .config import TrainConfig
+from .dataset import load_scene_bounds, load_split
+from .files import write_json
+from .model import NerfModel
+from .ray_bounds import RayBounds, choose_ray_bounds
+from .render_views import DEFAULT_CHUNK, render_poses
+from .run_folder import RunFolder
+
+RENDERS_RECORD = "renders.json"
+
+
+def load_trained_model(run: RunFolder, device: torch.device) -> tuple[NerfModel, RayBounds, dict]:
+    """The run's model with its latest checkpoint, its ray bounds, and the checkpoint's
+    iteration and training time."""
+    stored = run.read_config()
+    config = TrainConfig.from_dict(stored["config"])
+    state = run.load_checkpoint(device)
+    model = NerfModel(config).to(device)
+    model.load_state_dict(state["model"])
+    model.eval()
+    ray_bounds, _ = choose_ray_bounds(config.ray_bounds, load_scene_bounds(stored["dataset"]))
+    return model, ray_bounds, {"iteration": state["iteration"], "train_seconds": state["train_seconds"]}
+
+
+def view_stem(image_path: Path) -> str:
+    return image_path.stem
+
+
+def render_split(run: RunFolder, split: str, device: torch.device, chunk: int = DEFAULT_CHUNK,
+                 progress: bool = True) -> Path:
+    """Render every view of ``split`` with the run's latest checkpoint; returns the folder.
+
+    The folder's ``renders.json`` records the checkpoint iteration, so stale renders (from
+    before the run trained further) are recognised."""
+    stored = run.read_config()
+    dataset_split = load_split(stored["dataset"], split)
+    model, ray_bounds, state = load_trained_model(run, device)
+    out_dir = run.renders_dir(split)
+    stems = [view_stem(p) for p in dataset_split.image_paths]
+    bar = tqdm(total=len(stems), desc=f"render {split}", unit="view", disable=not progress, file=sys.stderr)
+    render_poses(model, dataset_split.intrinsics, dataset_split.poses, stems, ray_bounds, out_dir,
+                 chunk=chunk, on_view=lambda i: bar.update(1))
+    bar.close()
+    write_json(out_dir / RENDERS_RECORD, {
+        "split": split, "iteration": state["iteration"], "views": stems,
+        "image": "RGB over white, 8-bit PNG", "depth": "STEM_depth.exr: Z = expected ray distance, A = opacity",
+    })
+    return out_dir
+
+
+def renders_are_current(run: RunFolder, split: str) -> bool:
+    """True when RUN/renders/SPLIT was rendered from the run's latest checkpoint."""
+    record = run.renders_dir(split) / RENDERS_RECORD
+    if not record.exists() or not run.checkpoint_path.exists():
+        return False
+    rendered_iteration = json.loads(record.read_text()).get("iteration")
+    state = torch.load(run.checkpoint_path, map_location="cpu", weights_only=False)
+    return rendered_iteration == state["iteration"]

@@ -1,0 +1,123 @@
+"""A run folder: its config, its event log, its checkpoint and the lock that keeps two
+trainings out of the same folder.
+
+Layout::
+
+    RUN/config.json        dataset, seed, device, the full TrainConfig, decisions made
+    RUN/events.jsonl       one JSON object a line (start, train, val, checkpoint, done, error)
+    RUN/checkpoint.pt      the latest checkpoint, replaced atomically
+    RUN/preview.png        the latest validation render
+    RUN/renders/SPLIT/     rendered views; RUN/metrics.json from ``eval``
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .errors import RunError
+from .files import atomic_write, write_json
+
+CONFIG_NAME = "config.json"
+EVENTS_NAME = "events.jsonl"
+CHECKPOINT_NAME = "checkpoint.pt"
+LOCK_NAME = ".lock"
+
+
+class RunFolder:
+    def __init__(self, path: Path | str) -> None:
+        self.path = Path(path)
+        self._lock_handle = None
+
+    @property
+    def config_path(self) -> Path:
+        return self.path / CONFIG_NAME
+
+    @property
+    def events_path(self) -> Path:
+        return self.path / EVENTS_NAME
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.path / CHECKPOINT_NAME
+
+    def renders_dir(self, split: str) -> Path:
+        return self.path / "renders" / split
+
+    def read_config(self) -> dict:
+        if not self.config_path.is_file():
+            raise RunError(f"{self.path}: not a run folder (no {CONFIG_NAME}); train one first")
+        try:
+            return json.loads(self.config_path.read_text())
+        except json.JSONDecodeError as exc:
+            raise RunError(f"{self.config_path}: not valid JSON ({exc})") from None
+
+    def write_config(self, config: dict) -> None:
+        write_json(self.config_path, config)
+
+    def log_event(self, event: str, **fields: Any) -> None:
+        """Append one event line; flushed at once so a reader (the add-on) sees it live."""
+        record = {"event": event, "time": time.time(), **fields}
+        with open(self.events_path, "a", encoding="utf-8") as handle:
+            handle.write(json.dumps(record) + "\n")
+            handle.flush()
+
+    def read_events(self) -> list[dict]:
+        if not self.events_path.exists():
+            return []
+        events = []
+        for line in self.events_path.read_text(encoding="utf-8").splitlines():
+            try:
+                events.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue  # a line cut by a kill mid-write: the rest of the log stands
+        return events
+
+    def save_checkpoint(self, state: dict) -> None:
+        atomic_write(self.checkpoint_path, lambda tmp: torch.save(state, tmp))
+
+    def load_checkpoint(self, device: torch.device) -> dict:
+        if not self.checkpoint_path.is_file():
+            raise RunError(f"{self.checkpoint_path}: no checkpoint to load")
+        try:
+            return torch.load(self.checkpoint_path, map_location=device, weights_only=False)
+        except Exception as exc:  # torch raises several types for damaged files
+            raise RunError(f"{self.checkpoint_path}: cannot read checkpoint ({exc})") from None
+
+    def acquire_lock(self) -> None:
+        """Hold an exclusive OS lock on RUN/.lock for the life of this process; a second
+        trainer on the same folder gets a clear error. The OS drops it even on kill -9."""
+        self.path.mkdir(parents=True, exist_ok=True)
+        handle = open(self.path / LOCK_NAME, "a+")
+        try:
+            _lock_file(handle)
+        except OSError:
+            handle.close()
+            raise RunError(f"{self.path}: another training is already using this run folder") from None
+        handle.seek(0)
+        handle.truncate()
+        handle.write(str(os.getpid()))
+        handle.flush()
+        self._lock_handle = handle
+
+    def release_lock(self) -> None:
+        if self._lock_handle is not None:
+            self._lock_handle.close()
+            self._lock_handle = None
+
+
+def _lock_file(handle) -> None:
+    try:
+        import fcntl
+    except ImportError:  # Windows
+        import msvcrt
+
+        handle.seek(0)
+        msvcrt.locking(handle.fileno(), msvcrt.LK_NBLCK, 1)
+        return
+    fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)

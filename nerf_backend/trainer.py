@@ -1,0 +1,249 @@
+"""The training loop: batches of random rays, coarse + fine photometric loss, Adam with
+exponential learning-rate decay, validation as it goes, atomic checkpoints, resume and
+cancel (SIGINT/SIGTERM finish the step, save, and stop)."""
+
+from __future__ import annotations
+
+import shutil
+import signal
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from .cameras import camera_rays, pixel_centres
+from .config import TrainConfig, preset_config
+from .dataset import DatasetSplit, composite_on_white, load_scene_bounds, load_split
+from .devices import resolve_device
+from .errors import NerfError, RunError
+from .files import write_png
+from .metrics import mse_to_psnr
+from .model import NerfModel
+from .ray_bounds import RayBounds, choose_ray_bounds
+from .render_views import render_image
+from .run_folder import LOCK_NAME, RunFolder
+
+
+@dataclass
+class TrainOptions:
+    dataset: Path
+    run: Path
+    preset: str | None = None  # None on resume: the run's own
+    iterations: int | None = None  # total for the run; None: the preset's
+    max_seconds: float | None = None  # total training seconds for the run
+    seed: int = 0
+    device: str = "auto"
+    resume: bool = False
+    overwrite: bool = False
+    progress: bool = True
+
+
+@dataclass
+class TrainSummary:
+    iteration: int
+    train_seconds: float
+    stop_reason: str  # "iterations", "time" or "cancelled"
+    val_psnr: float | None
+
+
+class _StopRequest:
+    """Turns SIGINT/SIGTERM into a flag the loop checks between steps."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous: dict[int, object] = {}
+
+    def __enter__(self) -> "_StopRequest":
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        self.requested = True
+
+    def __exit__(self, *exc) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+def _prepare_run_folder(run: RunFolder, options: TrainOptions) -> None:
+    """Refuse to reuse a non-empty folder unless resuming or told to overwrite."""
+    existing = [p for p in run.path.iterdir() if p.name != LOCK_NAME] if run.path.is_dir() else []
+    if options.resume:
+        run.read_config()  # raises a clear error if this is not a run
+        return
+    if existing and not options.overwrite:
+        raise RunError(f"{run.path}: run folder exists and is not empty; pass --resume to continue it or --overwrite to replace it")
+    for path in existing:
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+
+
+def _load_val(dataset: Path) -> DatasetSplit | None:
+    return load_split(dataset, "val") if (dataset / "transforms_val.json").exists() else None
+
+
+def sample_ray_batch(
+    split: DatasetSplit, batch: int, generator: torch.Generator, precrop_fraction: float | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random (image, pixel) indices: ``image [B]`` and row-major ``pixel [B]``, drawn from
+    the central ``precrop_fraction`` of each image when given."""
+    count, height, width = split.rgba.shape[:3]
+    image = torch.randint(count, (batch,), generator=generator)
+    if precrop_fraction is None:
+        x = torch.randint(width, (batch,), generator=generator)
+        y = torch.randint(height, (batch,), generator=generator)
+    else:
+        half_w = max(1, int(width * precrop_fraction / 2))
+        half_h = max(1, int(height * precrop_fraction / 2))
+        x = torch.randint(width // 2 - half_w, width // 2 + half_w, (batch,), generator=generator)
+        y = torch.randint(height // 2 - half_h, height // 2 + half_h, (batch,), generator=generator)
+    return image, y * width + x
+
+
+def train(options: TrainOptions) -> TrainSummary:
+    dataset = Path(options.dataset).resolve()
+    run = RunFolder(options.run)
+    run.acquire_lock()
+    try:
+        _prepare_run_folder(run, options)
+        return _train_locked(run, dataset, options)
+    finally:
+        run.release_lock()
+
+
+def _train_locked(run: RunFolder, dataset: Path, options: TrainOptions) -> TrainSummary:
+    device = resolve_device(options.device)
+    if options.resume:
+        stored = run.read_config()
+        if options.preset is not None and options.preset != stored["preset"]:
+            raise RunError(f"{run.path}: run was trained with preset {stored['preset']!r}, not {options.preset!r}")
+        if Path(stored["dataset"]) != dataset:
+            raise RunError(f"{run.path}: run was trained on {stored['dataset']}, not {dataset}")
+        config = TrainConfig.from_dict(stored["config"])
+        seed = stored["seed"]
+        max_seconds = options.max_seconds if options.max_seconds is not None else stored.get("max_seconds")
+    else:
+        config = preset_config(options.preset or "preview")
+        seed = options.seed
+        max_seconds = options.max_seconds
+    if options.iterations is not None:
+        config = replace(config, iterations=options.iterations)
+
+    train_split = load_split(dataset, "train")
+    val_split = _load_val(dataset)
+    ray_bounds, bounds_reason = choose_ray_bounds(config.ray_bounds, load_scene_bounds(dataset))
+    run.write_config({
+        "dataset": str(dataset),
+        "preset": config.preset,
+        "seed": seed,
+        "device": str(device),
+        "max_seconds": max_seconds,
+        "config": config.to_dict(),
+        "decisions": {"ray_bounds": {**ray_bounds.describe(), "reason": bounds_reason}},
+        "background": "white (RGBA composited as rgb·α + 1 − α)",
+        "image_size": [train_split.intrinsics.width, train_split.intrinsics.height],
+        "train_views": len(train_split),
+    })
+
+    torch.manual_seed(seed)
+    model = NerfModel(config).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate, eps=config.adam_eps)
+    batch_generator = torch.Generator().manual_seed(seed)
+    sample_generator = torch.Generator(device=device).manual_seed(seed + 1)
+    iteration, train_seconds = 0, 0.0
+    if options.resume and run.checkpoint_path.exists():
+        state = run.load_checkpoint(device)
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        batch_generator.set_state(state["batch_rng"])
+        sample_generator.set_state(state["sample_rng"].to(sample_generator.get_state().device))
+        iteration, train_seconds = state["iteration"], state["train_seconds"]
+
+    def checkpoint() -> None:
+        run.save_checkpoint({
+            "iteration": iteration, "train_seconds": train_seconds, "model": model.state_dict(),
+            "optimizer": optimizer.state_dict(), "batch_rng": batch_generator.get_state(),
+            "sample_rng": sample_generator.get_state(), "config": config.to_dict(),
+        })
+        run.log_event("checkpoint", iteration=iteration, elapsed_s=train_seconds, path=str(run.checkpoint_path))
+
+    rgba = train_split.rgba.to(device)
+    poses = train_split.poses.to(device)
+    height, width = rgba.shape[1:3]
+    run.log_event("start", iteration=iteration, resumed=options.resume, preset=config.preset,
+                  device=str(device), target_iterations=config.iterations, max_seconds=max_seconds)
+    val_psnr: float | None = None
+    stop_reason = "iterations"
+    progress = tqdm(total=config.iterations, initial=iteration, disable=not options.progress,
+                    desc=f"train {config.preset}", unit="it", file=sys.stderr, dynamic_ncols=True)
+    model.train()
+    with _StopRequest() as stop:
+        while iteration < config.iterations:
+            if max_seconds is not None and train_seconds >= max_seconds:
+                stop_reason = "time"
+                break
+            if stop.requested:
+                stop_reason = "cancelled"
+                break
+            step_start = time.perf_counter()
+            precrop = config.precrop_fraction if iteration < config.precrop_iterations else None
+            image_index, pixel_index = sample_ray_batch(train_split, config.rays_per_batch, batch_generator, precrop)
+            image_index, pixel_index = image_index.to(device), pixel_index.to(device)
+            target = composite_on_white(rgba[image_index, pixel_index // width, pixel_index % width])
+            origins, directions = camera_rays(train_split.intrinsics, poses[image_index], pixel_centres(width, pixel_index))
+            t_near, t_far = ray_bounds(origins, directions)
+            for group in optimizer.param_groups:
+                group["lr"] = config.learning_rate_at(iteration)
+            coarse, fine = model(origins, directions, t_near, t_far, background=1.0, generator=sample_generator)
+            loss = F.mse_loss(coarse.rgb, target)
+            fine_mse = F.mse_loss(fine.rgb, target) if fine is not None else loss
+            if fine is not None:
+                loss = loss + fine_mse
+            if not torch.isfinite(loss):
+                message = (f"training diverged at iteration {iteration} (loss {loss.item()}); "
+                           f"the last good checkpoint is kept at {run.checkpoint_path}")
+                run.log_event("error", iteration=iteration, message=message)
+                raise NerfError(message)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            iteration += 1
+            train_seconds += time.perf_counter() - step_start
+            progress.update(1)
+            if iteration % config.log_every == 0 or iteration == config.iterations:
+                batch_psnr = mse_to_psnr(fine_mse.item())
+                progress.set_postfix(loss=f"{loss.item():.4f}", psnr=f"{batch_psnr:.2f}")
+                run.log_event("train", iteration=iteration, loss=loss.item(), psnr=batch_psnr,
+                              lr=config.learning_rate_at(iteration), elapsed_s=train_seconds)
+            if val_split is not None and iteration % config.validate_every == 0:
+                val_psnr = _validate(model, val_split, ray_bounds, run, iteration, train_seconds)
+            if iteration % config.checkpoint_every == 0:
+                checkpoint()
+    progress.close()
+    if val_split is not None and (val_psnr is None or iteration % config.validate_every != 0):
+        val_psnr = _validate(model, val_split, ray_bounds, run, iteration, train_seconds)
+    checkpoint()
+    run.log_event("done", iteration=iteration, elapsed_s=train_seconds, reason=stop_reason, val_psnr=val_psnr)
+    return TrainSummary(iteration, train_seconds, stop_reason, val_psnr)
+
+
+def _validate(
+    model: NerfModel, val_split: DatasetSplit, ray_bounds: RayBounds, run: RunFolder, iteration: int,
+    train_seconds: float,
+) -> float:
+    """Render one validation view (cycling through them) and log its PSNR; the render
+    becomes RUN/preview.png for anyone watching."""
+    view = (iteration // max(1, model.config.validate_every)) % len(val_split)
+    image = render_image(model, val_split.intrinsics, val_split.poses[view], ray_bounds)
+    target = val_split.rgb_on_white(view).numpy()
+    value = mse_to_psnr(float(((image.rgb - target) ** 2).mean()))
+    write_png(run.path / "preview.png", image.rgb)
+    run.log_event("val", iteration=iteration, psnr=value, view=view, elapsed_s=train_seconds)
+    return value
