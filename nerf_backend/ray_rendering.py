@@ -67,8 +67,36 @@ def render_rays(
 
     Returns ``(coarse_output, fine_output)``; the fine output is None without a fine field.
     Jitter and random quantiles are used only when ``training``, so evaluation is
-    deterministic.
+    deterministic. Rays with ``t_far <= t_near`` (they miss the scene's box) are not sent
+    through the fields at all: they render as the background.
     """
+    active = t_far > t_near
+    if bool(active.all()):
+        return _render_coarse_fine(coarse, fine, origins, directions, t_near, t_far, sampling, background,
+                                   training, generator)
+    index = active.nonzero().squeeze(-1)
+    outputs = _render_coarse_fine(coarse, fine, origins[index], directions[index], t_near[index], t_far[index],
+                                  sampling, background, training, generator)
+    return tuple(None if out is None else _scatter(out, index, active.shape[0], background) for out in outputs)
+
+
+def _scatter(out: RenderOutput, index: Tensor, rays: int, background: Tensor | float) -> RenderOutput:
+    """Outputs for all ``rays`` from those of the active subset; the rest are background."""
+    rgb = torch.empty((rays, 3), dtype=out.rgb.dtype, device=out.rgb.device)
+    rgb[:] = torch.as_tensor(background, dtype=out.rgb.dtype, device=out.rgb.device)
+    rgb = rgb.index_put((index,), out.rgb)
+    zeros = out.depth.new_zeros(rays)
+    weights = out.weights.new_zeros((rays, out.weights.shape[1])).index_put((index,), out.weights)
+    edges = out.t_edges.new_zeros((rays, out.t_edges.shape[1])).index_put((index,), out.t_edges)
+    return RenderOutput(rgb=rgb, depth=zeros.index_put((index,), out.depth),
+                        opacity=zeros.index_put((index,), out.opacity), weights=weights, t_edges=edges)
+
+
+def _render_coarse_fine(
+    coarse: NerfField, fine: NerfField | None, origins: Tensor, directions: Tensor, t_near: Tensor,
+    t_far: Tensor, sampling: SamplingConfig, background: Tensor | float, training: bool,
+    generator: torch.Generator | None,
+) -> tuple[RenderOutput, RenderOutput | None]:
     coarse_edges = stratified_edges(t_near, t_far, sampling.coarse_samples, jitter=training, generator=generator)
     coarse_out = render_pass(coarse, origins, directions, coarse_edges, background)
     if fine is None or sampling.fine_samples == 0:

@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from .cameras import camera_rays, pixel_centres
 from .config import TrainConfig, preset_config
-from .dataset import DatasetSplit, composite_on_white, load_scene_bounds, load_split
+from .dataset import DatasetSplit, SceneBounds, composite_on_white, load_scene_bounds, load_split
 from .devices import resolve_device
 from .errors import NerfError, RunError
 from .files import write_png
@@ -109,16 +109,23 @@ def sample_ray_batch(
 
 def train(options: TrainOptions) -> TrainSummary:
     dataset = Path(options.dataset).resolve()
+    # Read the whole dataset before touching the run folder: bad input leaves nothing behind.
+    train_split = load_split(dataset, "train")
+    val_split = _load_val(dataset)
+    scene_bounds = load_scene_bounds(dataset)
     run = RunFolder(options.run)
     run.acquire_lock()
     try:
         _prepare_run_folder(run, options)
-        return _train_locked(run, dataset, options)
+        return _train_locked(run, dataset, train_split, val_split, scene_bounds, options)
     finally:
         run.release_lock()
 
 
-def _train_locked(run: RunFolder, dataset: Path, options: TrainOptions) -> TrainSummary:
+def _train_locked(
+    run: RunFolder, dataset: Path, train_split: DatasetSplit, val_split: DatasetSplit | None,
+    scene_bounds: SceneBounds | None, options: TrainOptions,
+) -> TrainSummary:
     device = resolve_device(options.device)
     if options.resume:
         stored = run.read_config()
@@ -136,9 +143,7 @@ def _train_locked(run: RunFolder, dataset: Path, options: TrainOptions) -> Train
     if options.iterations is not None:
         config = replace(config, iterations=options.iterations)
 
-    train_split = load_split(dataset, "train")
-    val_split = _load_val(dataset)
-    ray_bounds, bounds_reason = choose_ray_bounds(config.ray_bounds, load_scene_bounds(dataset))
+    ray_bounds, bounds_reason = choose_ray_bounds(config.ray_bounds, scene_bounds)
     run.write_config({
         "dataset": str(dataset),
         "preset": config.preset,

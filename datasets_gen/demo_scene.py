@@ -1,0 +1,200 @@
+"""A small procedural demo scene, built in code, that exercises what NeRFs find hard.
+
+It sits at the origin within radius ~1.05, so the protocol's camera (radius 4.03, FOV 0.691 rad,
+which sees about +-1.45 at the origin) frames it from every direction without clipping:
+a diffuse pedestal, a glossy gold sphere (view-dependent highlights), a checker-textured cube
+and a brick-textured cone (high-frequency texture), and a thin rod carrying a thin ring
+(minor radius 0.03: thin structures). A world colour lights it from all around (the film is
+transparent, so it is never seen directly) and a sun adds shadows.
+
+Meshes are made with bmesh and the data API rather than operators, so the scene can be built
+into a scene that is not the active one and the result never depends on UI context.
+Everything is deterministic.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional, Sequence
+
+import bmesh
+import bpy
+from mathutils import Euler
+
+from .blender_compat import node_tree_of, principled_bsdf, set_node_input
+
+DEMO_SCENE_NAME = "NeRF demo"
+PEDESTAL_TOP_Z = -0.5
+
+
+def build_demo_scene(name: str = DEMO_SCENE_NAME) -> "bpy.types.Scene":
+    """Create a new scene holding the demo objects, world and sun; return it."""
+    scene = bpy.data.scenes.new(name)
+    scene.world = _demo_world(name)
+
+    pedestal = _add_object(scene, "pedestal", _cylinder_mesh("pedestal", 0.85, 0.12, 96),
+                           (0.0, 0.0, PEDESTAL_TOP_Z - 0.06))
+    _assign(pedestal, _material("pedestal", (0.55, 0.50, 0.45), roughness=0.8))
+
+    sphere_radius = 0.32
+    sphere = _add_object(scene, "gold sphere", _sphere_mesh("gold sphere", sphere_radius),
+                         (0.38, -0.22, PEDESTAL_TOP_Z + sphere_radius))
+    _assign(sphere, _material("gold", (1.0, 0.72, 0.30), roughness=0.15, metallic=1.0))
+
+    cube_size = 0.5
+    cube = _add_object(scene, "checker cube", _cube_mesh("checker cube", cube_size),
+                       (-0.38, 0.18, PEDESTAL_TOP_Z + cube_size / 2.0), rotation_z_deg=30.0)
+    _assign(cube, _textured_material("checker", "ShaderNodeTexChecker",
+                                     (0.08, 0.22, 0.80), (0.92, 0.92, 0.92), scale=4.0))
+
+    cone_height = 0.45
+    cone = _add_object(scene, "brick cone", _cone_mesh("brick cone", 0.22, cone_height, 64),
+                       (-0.22, -0.48, PEDESTAL_TOP_Z + cone_height / 2.0))
+    _assign(cone, _textured_material("brick", "ShaderNodeTexBrick",
+                                     (0.70, 0.22, 0.08), (0.95, 0.55, 0.20), scale=6.0))
+
+    rod_length = 0.95
+    rod_xy = (0.12, 0.38)
+    rod = _add_object(scene, "thin rod", _cylinder_mesh("thin rod", 0.025, rod_length, 24),
+                      (rod_xy[0], rod_xy[1], PEDESTAL_TOP_Z + rod_length / 2.0))
+    _assign(rod, _material("rod", (0.60, 0.05, 0.05), roughness=0.4))
+
+    ring_major = 0.25
+    ring = _add_object(scene, "thin ring", _torus_mesh("thin ring", ring_major, 0.03),
+                       (rod_xy[0], rod_xy[1], PEDESTAL_TOP_Z + rod_length + ring_major),
+                       rotation_x_deg=90.0, rotation_z_deg=45.0)
+    _assign(ring, _material("ring", (0.10, 0.60, 0.25), roughness=0.3))
+
+    sun_data = bpy.data.lights.new(f"{name} sun", type="SUN")
+    sun_data.energy = 3.0
+    sun_data.angle = math.radians(5.0)
+    _add_object(scene, "sun", sun_data, (0.0, 0.0, 3.0), rotation_x_deg=40.0, rotation_z_deg=30.0)
+
+    scene.view_layers[0].update()
+    return scene
+
+
+def _demo_world(name: str) -> "bpy.types.World":
+    """A plain sky-blue environment: lights the scene softly from every direction."""
+    world = bpy.data.worlds.new(f"{name} world")
+    tree = node_tree_of(world)
+    background = next(node for node in tree.nodes if node.type == "BACKGROUND")
+    background.inputs["Color"].default_value = (0.55, 0.60, 0.70, 1.0)
+    background.inputs["Strength"].default_value = 0.6
+    return world
+
+
+def _add_object(
+    scene: "bpy.types.Scene",
+    name: str,
+    data: Optional["bpy.types.ID"],
+    location: Sequence[float],
+    rotation_x_deg: float = 0.0,
+    rotation_z_deg: float = 0.0,
+) -> "bpy.types.Object":
+    obj = bpy.data.objects.new(name, data)
+    obj.location = location
+    obj.rotation_euler = Euler((math.radians(rotation_x_deg), 0.0, math.radians(rotation_z_deg)), "XYZ")
+    scene.collection.objects.link(obj)
+    return obj
+
+
+def _assign(obj: "bpy.types.Object", material: "bpy.types.Material") -> None:
+    obj.data.materials.append(material)
+
+
+def _material(
+    name: str, colour: Sequence[float], roughness: float, metallic: float = 0.0
+) -> "bpy.types.Material":
+    material = bpy.data.materials.new(name)
+    bsdf = principled_bsdf(material)
+    set_node_input(bsdf, ["Base Color"], (*colour, 1.0))
+    set_node_input(bsdf, ["Roughness"], roughness)
+    set_node_input(bsdf, ["Metallic"], metallic)
+    return material
+
+
+def _textured_material(
+    name: str,
+    texture_node_type: str,
+    colour_a: Sequence[float],
+    colour_b: Sequence[float],
+    scale: float,
+) -> "bpy.types.Material":
+    """A Principled material whose base colour is a procedural texture on Generated coordinates."""
+    material = _material(name, colour_a, roughness=0.6)
+    tree = node_tree_of(material)
+    coordinates = tree.nodes.new("ShaderNodeTexCoord")
+    texture = tree.nodes.new(texture_node_type)
+    texture.inputs["Color1"].default_value = (*colour_a, 1.0)
+    texture.inputs["Color2"].default_value = (*colour_b, 1.0)
+    texture.inputs["Scale"].default_value = scale
+    tree.links.new(coordinates.outputs["Generated"], texture.inputs["Vector"])
+    tree.links.new(texture.outputs["Color"], principled_bsdf(material).inputs["Base Color"])
+    return material
+
+
+def _mesh_from_bmesh(name: str, bm: "bmesh.types.BMesh", smooth: bool) -> "bpy.types.Mesh":
+    mesh = bpy.data.meshes.new(name)
+    bm.to_mesh(mesh)
+    bm.free()
+    mesh.polygons.foreach_set("use_smooth", [smooth] * len(mesh.polygons))
+    mesh.update()
+    return mesh
+
+
+def _sphere_mesh(name: str, radius: float) -> "bpy.types.Mesh":
+    bm = bmesh.new()
+    bmesh.ops.create_uvsphere(bm, u_segments=64, v_segments=32, radius=radius)
+    return _mesh_from_bmesh(name, bm, smooth=True)
+
+
+def _cube_mesh(name: str, size: float) -> "bpy.types.Mesh":
+    bm = bmesh.new()
+    bmesh.ops.create_cube(bm, size=size)
+    return _mesh_from_bmesh(name, bm, smooth=False)
+
+
+def _cone_mesh(name: str, radius: float, height: float, segments: int) -> "bpy.types.Mesh":
+    bm = bmesh.new()
+    bmesh.ops.create_cone(bm, cap_ends=True, cap_tris=False, segments=segments,
+                          radius1=radius, radius2=0.0, depth=height)
+    return _mesh_from_bmesh(name, bm, smooth=False)
+
+
+def _cylinder_mesh(name: str, radius: float, height: float, segments: int) -> "bpy.types.Mesh":
+    """A capped cylinder centred on its origin, smooth sides and flat caps."""
+    bm = bmesh.new()
+    bmesh.ops.create_cone(bm, cap_ends=True, cap_tris=False, segments=segments,
+                          radius1=radius, radius2=radius, depth=height)
+    mesh = _mesh_from_bmesh(name, bm, smooth=False)
+    side = [abs(polygon.normal.z) < 0.5 for polygon in mesh.polygons]
+    mesh.polygons.foreach_set("use_smooth", side)
+    mesh.update()
+    return mesh
+
+
+def _torus_mesh(name: str, major_radius: float, minor_radius: float,
+                major_segments: int = 64, minor_segments: int = 16) -> "bpy.types.Mesh":
+    """A torus in the XY plane around the origin (bmesh has no torus operator)."""
+    vertices = []
+    for i in range(major_segments):
+        around = 2.0 * math.pi * i / major_segments
+        for j in range(minor_segments):
+            tube = 2.0 * math.pi * j / minor_segments
+            distance = major_radius + minor_radius * math.cos(tube)
+            vertices.append((distance * math.cos(around), distance * math.sin(around),
+                             minor_radius * math.sin(tube)))
+    faces = []
+    for i in range(major_segments):
+        next_i = (i + 1) % major_segments
+        for j in range(minor_segments):
+            next_j = (j + 1) % minor_segments
+            faces.append((i * minor_segments + j, next_i * minor_segments + j,
+                          next_i * minor_segments + next_j, i * minor_segments + next_j))
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata(vertices, [], faces)
+    mesh.polygons.foreach_set("use_smooth", [True] * len(mesh.polygons))
+    mesh.update()
+    return mesh
+

@@ -1,0 +1,56 @@
+"""Progress over rendered views on stderr: a tqdm bar when tqdm is importable, plain lines otherwise.
+
+Blender's own Python (e.g. Debian's `blender` binary) usually has no tqdm, and a dataset
+render can take hours, so some progress must always be shown.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import Any, Optional
+
+
+class ViewProgress:
+    """Counts rendered views; use as a context manager and call `advance(split, index)` per view."""
+
+    def __init__(self, total: int, enabled: bool = True) -> None:
+        self._total = total
+        self._enabled = enabled
+        self._done = 0
+        self._start = time.monotonic()
+        self._bar: Optional[Any] = None
+        if enabled:
+            try:
+                from tqdm import tqdm
+            except ImportError:
+                tqdm = None
+            if tqdm is not None:
+                self._bar = tqdm(total=total, unit="view", file=sys.stderr, desc="rendering")
+
+    def advance(self, split: str, index: int) -> None:
+        """Record that view `index` of `split` has been written."""
+        self._done += 1
+        if not self._enabled:
+            return
+        if self._bar is not None:
+            self._bar.set_postfix_str(f"{split} r_{index}", refresh=False)
+            self._bar.update(1)
+        else:
+            elapsed = time.monotonic() - self._start
+            print(
+                f"datasets_gen: {self._done}/{self._total} views ({split} r_{index}), {elapsed:.1f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+    def __enter__(self) -> "ViewProgress":
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()

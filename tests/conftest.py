@@ -1,0 +1,43 @@
+"""Shared fixtures: a tiny dataset rendered by real Blender (the bpy module) through the
+generator's own command line, once per test session."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SHARED_DIR = REPO_ROOT.parent / "shared"
+
+# Small enough for 2 cores, large enough to train on: 40×40, 30 training views.
+TINY_DEMO_ARGS = ["--demo", "--resolution", "40", "--train-views", "30", "--val-views", "2",
+                  "--test-views", "4", "--samples", "16", "--seed", "0"]
+
+
+def run_python(*args: str, timeout: float = 900, check: bool = True, **kwargs) -> subprocess.CompletedProcess:
+    """Run ``python ARGS`` with this interpreter from the repo root, capturing output."""
+    result = subprocess.run([sys.executable, *args], cwd=REPO_ROOT, capture_output=True, text=True,
+                            timeout=timeout, **kwargs)
+    if check and result.returncode != 0:
+        raise AssertionError(f"python {' '.join(args)} exited {result.returncode}\n"
+                             f"stdout:\n{result.stdout[-3000:]}\nstderr:\n{result.stderr[-3000:]}")
+    return result
+
+
+@pytest.fixture(scope="session")
+def tiny_demo_dataset(tmp_path_factory) -> Path:
+    """The demo scene rendered by Cycles at 40×40 (30 train, 2 val, 4 test views)."""
+    out = tmp_path_factory.mktemp("tiny_demo") / "dataset"
+    run_python("-m", "datasets_gen", *TINY_DEMO_ARGS, "--out", str(out))
+    return out
+
+
+@pytest.fixture(scope="session")
+def shared_scenes() -> Path:
+    path = SHARED_DIR / "scenes"
+    if not path.is_dir():
+        pytest.fail(f"{path} is missing: the project's tests need ../shared/scenes beside the repo")
+    return path
