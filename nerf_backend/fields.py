@@ -21,7 +21,9 @@ class FieldConfig:
 
     depth: int = 8
     width: int = 256
-    skips: tuple[int, ...] = (4,)
+    # Layers (0-based) whose input gets the encoded position concatenated: (5,) feeds it
+    # with the fifth layer's activation into the sixth, as the paper's Fig. 7.
+    skips: tuple[int, ...] = (5,)
     position_frequencies: int = 10
     direction_frequencies: int = 4
     view_dependent: bool = True

@@ -16,7 +16,9 @@ from .files import write_exr, write_png
 from .model import NerfModel
 from .ray_bounds import RayBounds
 
-DEFAULT_CHUNK = 4096
+# Rays per forward pass. Measured on 2 CPU cores (preview preset, 100×100 view): 1024 rays
+# took 1.7 s a view, 4096 took 2.6 s, 8192 took 3.1 s (larger activations cost page faults).
+DEFAULT_CHUNK = 1024
 
 
 @dataclass

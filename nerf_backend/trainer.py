@@ -50,6 +50,34 @@ class TrainSummary:
     val_psnr: float | None
 
 
+class _TrainingProgress:
+    """A tqdm bar over iterations, or over training seconds when a time budget will end
+    the run first (then the bar's time left is the real one)."""
+
+    def __init__(self, iterations: int, iteration: int, max_seconds: float | None, seconds: float,
+                 enabled: bool, description: str) -> None:
+        self.by_time = max_seconds is not None
+        total, initial = (max_seconds, seconds) if self.by_time else (iterations, iteration)
+        self.bar = tqdm(total=total, initial=initial, disable=not enabled, desc=description, file=sys.stderr,
+                        unit="s" if self.by_time else "it", dynamic_ncols=True,
+                        bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}{postfix}]"
+                        if self.by_time else None)
+        self.iteration = iteration
+
+    def step(self, iteration: int, seconds: float) -> None:
+        if self.by_time:
+            self.bar.update(min(seconds, self.bar.total) - self.bar.n)
+        else:
+            self.bar.update(iteration - self.iteration)
+        self.iteration = iteration
+
+    def show(self, **values: str) -> None:
+        self.bar.set_postfix(it=self.iteration, **values) if self.by_time else self.bar.set_postfix(**values)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
 class _StopRequest:
     """Turns SIGINT/SIGTERM into a flag the loop checks between steps."""
 
@@ -186,8 +214,8 @@ def _train_locked(
                   device=str(device), target_iterations=config.iterations, max_seconds=max_seconds)
     val_psnr: float | None = None
     stop_reason = "iterations"
-    progress = tqdm(total=config.iterations, initial=iteration, disable=not options.progress,
-                    desc=f"train {config.preset}", unit="it", file=sys.stderr, dynamic_ncols=True)
+    progress = _TrainingProgress(config.iterations, iteration, max_seconds, train_seconds,
+                                 enabled=options.progress, description=f"train {config.preset}")
     model.train()
     with _StopRequest() as stop:
         while iteration < config.iterations:
@@ -221,10 +249,10 @@ def _train_locked(
             optimizer.step()
             iteration += 1
             train_seconds += time.perf_counter() - step_start
-            progress.update(1)
+            progress.step(iteration, train_seconds)
             if iteration % config.log_every == 0 or iteration == config.iterations:
                 batch_psnr = mse_to_psnr(fine_mse.item())
-                progress.set_postfix(loss=f"{loss.item():.4f}", psnr=f"{batch_psnr:.2f}")
+                progress.show(loss=f"{loss.item():.4f}", psnr=f"{batch_psnr:.2f}")
                 run.log_event("train", iteration=iteration, loss=loss.item(), psnr=batch_psnr,
                               lr=config.learning_rate_at(iteration), elapsed_s=train_seconds)
             if val_split is not None and iteration % config.validate_every == 0:
