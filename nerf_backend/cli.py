@@ -40,6 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--iters", type=_positive_int, default=None, help="total iterations for the run")
     train.add_argument("--max-seconds", type=_positive_float, default=None, help="total training seconds for the run")
     train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
+                       help="change one preset setting, e.g. grid.resolution=96 (repeatable)")
     train.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
     train.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     train.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
@@ -66,7 +68,7 @@ def _run(args: argparse.Namespace) -> int:
 
         summary = train(TrainOptions(
             dataset=args.dataset, run=args.out, preset=args.preset, iterations=args.iters,
-            max_seconds=args.max_seconds, seed=args.seed, device=args.device, resume=args.resume,
+            max_seconds=args.max_seconds, seed=args.seed, overrides=tuple(args.overrides), device=args.device, resume=args.resume,
             overwrite=args.overwrite, progress=not args.no_progress,
         ))
         val = f", validation PSNR {summary.val_psnr:.2f} dB" if summary.val_psnr is not None else ""

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 from .errors import NerfError
 from .fields import FieldConfig
+from .grid_field import GridFieldConfig
 from .ray_rendering import SamplingConfig
 
 
@@ -16,8 +17,17 @@ class TrainConfig:
     """Everything that decides how a run trains."""
 
     preset: str
+    # "nerf": the paper's MLP fields, coarse-to-fine. "grid": factorised grids marched in
+    # fixed steps with an occupancy grid (the fast preset).
+    model: str = "nerf"
     field: FieldConfig = dataclasses.field(default_factory=FieldConfig)
     sampling: SamplingConfig = dataclasses.field(default_factory=SamplingConfig)
+    grid: GridFieldConfig = dataclasses.field(default_factory=GridFieldConfig)
+    grid_step_ratio: float = 0.5  # march step as a fraction of a grid cell
+    occupancy_warmup: int = 16  # steps before empty space is skipped at all
+    occupancy_every: int = 16
+    occupancy_alpha_threshold: float = 1e-4  # cells that cannot reach this alpha in one step are empty
+    colour_weight_threshold: float = 1e-4  # samples lighter than this get no colour evaluation
     # "protocol": near 2, far 6 for every ray (the reference loaders). "scene": each ray's
     # entry and exit of the scene's bounding box from scene_profile.json (falls back to
     # "protocol" for datasets without one).
@@ -25,6 +35,9 @@ class TrainConfig:
     rays_per_batch: int = 1024
     iterations: int = 200_000
     learning_rate: float = 5e-4
+    # Learning rate of the MLPs when the model also has grids (which use learning_rate).
+    network_learning_rate: float = 5e-4
+    adam_betas: tuple[float, float] = (0.9, 0.999)
     # lr(step) = learning_rate · (final_learning_rate / learning_rate)^(step / lr_decay_steps)
     final_learning_rate: float = 5e-5
     lr_decay_steps: int = 500_000
@@ -33,6 +46,9 @@ class TrainConfig:
     # image is a local minimum a NeRF falls into when most early rays miss the object.
     precrop_iterations: int = 500
     precrop_fraction: float = 0.5
+    # Composite each training ray's ground truth and render over a random colour instead of
+    # white: the alpha then decides, and "all background" stops being a minimum.
+    random_background: bool = False
     validate_every: int = 2500
     checkpoint_every: int = 1000
     log_every: int = 10
@@ -49,6 +65,9 @@ class TrainConfig:
         values = dict(data)
         values["field"] = FieldConfig(**{**values["field"], "skips": tuple(values["field"]["skips"])})
         values["sampling"] = SamplingConfig(**values["sampling"])
+        values["grid"] = GridFieldConfig(**{**values["grid"],
+                                            "upsample_iterations": tuple(values["grid"]["upsample_iterations"])})
+        values["adam_betas"] = tuple(values["adam_betas"])
         return cls(**values)
 
 
@@ -75,7 +94,60 @@ PRESETS: dict[str, TrainConfig] = {
         validate_every=250,
         checkpoint_every=250,
     ),
+    # Factorised grids (TensoRF's vector-matrix form) over the scene's box, an occupancy grid
+    # that skips empty space, colour only where samples carry weight, random backgrounds.
+    "fast": TrainConfig(
+        preset="fast",
+        model="grid",
+        grid=GridFieldConfig(resolution=128, initial_resolution=48, upsample_iterations=(300, 600, 1000)),
+        grid_step_ratio=1.0,
+        ray_bounds="scene",
+        rays_per_batch=1024,
+        iterations=3000,
+        learning_rate=0.02,
+        final_learning_rate=0.002,
+        lr_decay_steps=3000,
+        network_learning_rate=1e-3,
+        adam_betas=(0.9, 0.99),
+        adam_eps=1e-15,
+        precrop_iterations=0,
+        random_background=True,
+        validate_every=250,
+        checkpoint_every=250,
+    ),
 }
+
+
+def with_overrides(config: TrainConfig, assignments: list[str]) -> TrainConfig:
+    """``config`` with ``KEY=VALUE`` assignments applied; KEY may be dotted into the nested
+    configs (``grid.resolution=96``, ``field.view_dependent=false``). Values are parsed as
+    JSON where they can be (numbers, booleans, lists), else taken as strings."""
+    import json
+
+    data = config.to_dict()
+    for assignment in assignments:
+        key, sep, text = assignment.partition("=")
+        if not sep:
+            raise NerfError(f"--set {assignment!r}: expected KEY=VALUE")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            value = text
+        *parents, leaf = key.split(".")
+        target = data
+        for part in parents:
+            if not isinstance(target.get(part), dict):
+                raise NerfError(f"--set {key}: {part!r} is not a group of settings")
+            target = target[part]
+        if leaf not in target:
+            raise NerfError(f"--set {key}: no such setting; known here: {', '.join(sorted(target))}")
+        if isinstance(target[leaf], (int, float)) and not isinstance(target[leaf], bool) and not isinstance(value, (int, float)):
+            raise NerfError(f"--set {key}: expected a number, got {text!r}")
+        target[leaf] = value
+    try:
+        return TrainConfig.from_dict(data)
+    except TypeError as exc:
+        raise NerfError(f"--set: {exc}") from None
 
 
 def preset_config(name: str) -> TrainConfig:

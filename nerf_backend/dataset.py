@@ -38,7 +38,7 @@ class DatasetSplit:
 
     def rgb_on_white(self, index: int | slice | Tensor = slice(None)) -> Tensor:
         """Float RGB in [0, 1] composited over white, as the reference loaders do."""
-        return composite_on_white(self.rgba[index])
+        return composite(self.rgba[index])
 
 
 @dataclass(frozen=True)
@@ -58,11 +58,12 @@ class SceneBounds:
         )
 
 
-def composite_on_white(rgba: Tensor) -> Tensor:
-    """``uint8 [..., 4]`` → float RGB ``rgb·α + (1 − α)`` in [0, 1]."""
+def composite(rgba: Tensor, background: Tensor | float = 1.0) -> Tensor:
+    """``uint8 [..., 4]`` → float RGB ``rgb·α + background·(1 − α)`` in [0, 1]
+    (white by default, as the reference loaders)."""
     values = rgba.float() / 255.0
     alpha = values[..., 3:4]
-    return values[..., :3] * alpha + (1.0 - alpha)
+    return values[..., :3] * alpha + background * (1.0 - alpha)
 
 
 def _read_json(path: Path) -> dict:

@@ -12,7 +12,7 @@ from tqdm import tqdm
 from .config import TrainConfig
 from .dataset import load_scene_bounds, load_split
 from .files import write_json
-from .model import NerfModel
+from .models import build_model
 from .ray_bounds import RayBounds, choose_ray_bounds
 from .render_views import DEFAULT_CHUNK, render_poses
 from .run_folder import RunFolder
@@ -20,16 +20,17 @@ from .run_folder import RunFolder
 RENDERS_RECORD = "renders.json"
 
 
-def load_trained_model(run: RunFolder, device: torch.device) -> tuple[NerfModel, RayBounds, dict]:
+def load_trained_model(run: RunFolder, device: torch.device) -> tuple[torch.nn.Module, RayBounds, dict]:
     """The run's model with its latest checkpoint, its ray bounds, and the checkpoint's
     iteration and training time."""
     stored = run.read_config()
     config = TrainConfig.from_dict(stored["config"])
     state = run.load_checkpoint(device)
-    model = NerfModel(config).to(device)
+    ray_bounds, _ = choose_ray_bounds(config.ray_bounds, load_scene_bounds(stored["dataset"]))
+    model = build_model(config, ray_bounds.box).to(device)
+    model.match_state(state["model"])
     model.load_state_dict(state["model"])
     model.eval()
-    ray_bounds, _ = choose_ray_bounds(config.ray_bounds, load_scene_bounds(stored["dataset"]))
     return model, ray_bounds, {"iteration": state["iteration"], "train_seconds": state["train_seconds"]}
 
 

@@ -12,6 +12,8 @@ from .cameras import ray_box_intersection
 from .dataset import SceneBounds
 
 PROTOCOL_NEAR, PROTOCOL_FAR = 2.0, 6.0
+# Without a scene profile: the box the nerf_synthetic scenes are normalised into.
+PROTOCOL_BOX = SceneBounds((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
 # Room around the geometry's tight bounds, as a fraction of the box's largest side.
 BOX_PADDING = 0.05
 
@@ -47,7 +49,9 @@ def choose_ray_bounds(kind: str, scene_bounds: SceneBounds | None) -> tuple[RayB
             f"scene_profile.json bounds padded by {BOX_PADDING:.0%} of their largest side"
         )
     if kind == "scene":
-        return RayBounds(), "the dataset has no scene_profile.json: the protocol's near 2, far 6"
+        return RayBounds(box=PROTOCOL_BOX), (
+            "the dataset has no scene_profile.json: the box [-1.5, 1.5]³ the nerf_synthetic scenes fit in"
+        )
     if kind == "protocol":
         return RayBounds(), "the protocol's near 2, far 6 (as the reference loaders)"
     raise ValueError(f"unknown ray bounds kind {kind!r}")

@@ -13,7 +13,7 @@ from torch import Tensor
 
 from .cameras import Intrinsics, camera_rays, pixel_centres
 from .files import write_exr, write_png
-from .model import NerfModel
+from .models import final_output
 from .ray_bounds import RayBounds
 
 # Rays per forward pass. Measured on 2 CPU cores (preview preset, 100×100 view): 1024 rays
@@ -30,7 +30,7 @@ class RenderedImage:
 
 @torch.no_grad()
 def render_image(
-    model: NerfModel, intrinsics: Intrinsics, camera_to_world: Tensor, ray_bounds: RayBounds,
+    model: torch.nn.Module, intrinsics: Intrinsics, camera_to_world: Tensor, ray_bounds: RayBounds,
     chunk: int = DEFAULT_CHUNK,
 ) -> RenderedImage:
     """Render one view deterministically; peak memory scales with ``chunk``, not the image."""
@@ -48,7 +48,7 @@ def render_image(
         pixels = pixel_centres(width, torch.arange(start, stop, device=device))
         origins, directions = camera_rays(intrinsics, pose, pixels)
         t_near, t_far = ray_bounds(origins, directions)
-        out = NerfModel.final(model(origins, directions, t_near, t_far, background=1.0))
+        out = final_output(model(origins, directions, t_near, t_far, background=1.0))
         rgb[start:stop] = out.rgb.clamp(0, 1).float().cpu().numpy()
         depth[start:stop] = out.depth.float().cpu().numpy()
         opacity[start:stop] = out.opacity.clamp(0, 1).float().cpu().numpy()
@@ -65,7 +65,7 @@ def save_rendered(image: RenderedImage, out_dir: Path, stem: str) -> Path:
 
 
 def render_poses(
-    model: NerfModel, intrinsics: Intrinsics, poses: Tensor, stems: list[str], ray_bounds: RayBounds,
+    model: torch.nn.Module, intrinsics: Intrinsics, poses: Tensor, stems: list[str], ray_bounds: RayBounds,
     out_dir: Path, chunk: int = DEFAULT_CHUNK, on_view: Callable[[int], None] | None = None,
 ) -> list[Path]:
     """Render and save every pose; ``on_view(i)`` is called after each (progress)."""

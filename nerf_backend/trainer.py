@@ -16,13 +16,13 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from .cameras import camera_rays, pixel_centres
-from .config import TrainConfig, preset_config
-from .dataset import DatasetSplit, SceneBounds, composite_on_white, load_scene_bounds, load_split
+from .config import TrainConfig, preset_config, with_overrides
+from .dataset import DatasetSplit, SceneBounds, composite, load_scene_bounds, load_split
 from .devices import resolve_device
 from .errors import NerfError, RunError
 from .files import write_png
 from .metrics import mse_to_psnr
-from .model import NerfModel
+from .models import build_model, final_output
 from .ray_bounds import RayBounds, choose_ray_bounds
 from .render_views import render_image
 from .run_folder import LOCK_NAME, RunFolder
@@ -36,6 +36,7 @@ class TrainOptions:
     iterations: int | None = None  # total for the run; None: the preset's
     max_seconds: float | None = None  # total training seconds for the run
     seed: int = 0
+    overrides: tuple[str, ...] = ()  # KEY=VALUE changes to the preset (new runs only)
     device: str = "auto"
     resume: bool = False
     overwrite: bool = False
@@ -135,6 +136,17 @@ def sample_ray_batch(
     return image, y * width + x
 
 
+def _optimizer(model: torch.nn.Module, config: TrainConfig) -> torch.optim.Optimizer:
+    """Adam with the grids at ``learning_rate`` and MLPs at ``network_learning_rate`` (a
+    NeRF has only MLPs, at ``learning_rate``). ``initial_lr`` is what decay scales."""
+    grids = [p for name, p in model.named_parameters() if "_grid." in name]
+    networks = [p for name, p in model.named_parameters() if "_grid." not in name]
+    network_lr = config.network_learning_rate if grids else config.learning_rate
+    groups = [{"params": grids, "initial_lr": config.learning_rate, "lr": config.learning_rate},
+              {"params": networks, "initial_lr": network_lr, "lr": network_lr}]
+    return torch.optim.Adam([g for g in groups if g["params"]], betas=config.adam_betas, eps=config.adam_eps)
+
+
 def train(options: TrainOptions) -> TrainSummary:
     dataset = Path(options.dataset).resolve()
     # Read the whole dataset before touching the run folder: bad input leaves nothing behind.
@@ -161,11 +173,13 @@ def _train_locked(
             raise RunError(f"{run.path}: run was trained with preset {stored['preset']!r}, not {options.preset!r}")
         if Path(stored["dataset"]) != dataset:
             raise RunError(f"{run.path}: run was trained on {stored['dataset']}, not {dataset}")
+        if options.overrides:
+            raise RunError(f"{run.path}: --set applies to new runs; a resumed run keeps its config")
         config = TrainConfig.from_dict(stored["config"])
         seed = stored["seed"]
         max_seconds = options.max_seconds if options.max_seconds is not None else stored.get("max_seconds")
     else:
-        config = preset_config(options.preset or "preview")
+        config = with_overrides(preset_config(options.preset or "preview"), list(options.overrides))
         seed = options.seed
         max_seconds = options.max_seconds
     if options.iterations is not None:
@@ -186,14 +200,16 @@ def _train_locked(
     })
 
     torch.manual_seed(seed)
-    model = NerfModel(config).to(device)
-    optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate, eps=config.adam_eps)
+    model = build_model(config, ray_bounds.box).to(device)
+    optimizer = _optimizer(model, config)
     batch_generator = torch.Generator().manual_seed(seed)
     sample_generator = torch.Generator(device=device).manual_seed(seed + 1)
     iteration, train_seconds = 0, 0.0
     if options.resume and run.checkpoint_path.exists():
         state = run.load_checkpoint(device)
+        model.match_state(state["model"])
         model.load_state_dict(state["model"])
+        optimizer = _optimizer(model, config)
         optimizer.load_state_dict(state["optimizer"])
         batch_generator.set_state(state["batch_rng"])
         sample_generator.set_state(state["sample_rng"].to(sample_generator.get_state().device))
@@ -229,16 +245,23 @@ def _train_locked(
             precrop = config.precrop_fraction if iteration < config.precrop_iterations else None
             image_index, pixel_index = sample_ray_batch(train_split, config.rays_per_batch, batch_generator, precrop)
             image_index, pixel_index = image_index.to(device), pixel_index.to(device)
-            target = composite_on_white(rgba[image_index, pixel_index // width, pixel_index % width])
+            pixels_rgba = rgba[image_index, pixel_index // width, pixel_index % width]
+            if config.random_background:
+                background = torch.rand((len(pixel_index), 3), generator=batch_generator).to(device)
+            else:
+                background = torch.ones((), device=device)
+            target = composite(pixels_rgba, background)
             origins, directions = camera_rays(train_split.intrinsics, poses[image_index], pixel_centres(width, pixel_index))
             t_near, t_far = ray_bounds(origins, directions)
+            decay = config.learning_rate_at(iteration) / config.learning_rate
             for group in optimizer.param_groups:
-                group["lr"] = config.learning_rate_at(iteration)
-            coarse, fine = model(origins, directions, t_near, t_far, background=1.0, generator=sample_generator)
-            loss = F.mse_loss(coarse.rgb, target)
-            fine_mse = F.mse_loss(fine.rgb, target) if fine is not None else loss
-            if fine is not None:
-                loss = loss + fine_mse
+                group["lr"] = group["initial_lr"] * decay
+            if model.before_step(iteration):
+                optimizer = _optimizer(model, config)  # the grids were resampled
+            outputs = model(origins, directions, t_near, t_far, background=background, generator=sample_generator)
+            errors = [F.mse_loss(output.rgb, target) for output in outputs]
+            loss = torch.stack(errors).sum()
+            final_mse = errors[-1]
             if not torch.isfinite(loss):
                 message = (f"training diverged at iteration {iteration} (loss {loss.item()}); "
                            f"the last good checkpoint is kept at {run.checkpoint_path}")
@@ -251,7 +274,7 @@ def _train_locked(
             train_seconds += time.perf_counter() - step_start
             progress.step(iteration, train_seconds)
             if iteration % config.log_every == 0 or iteration == config.iterations:
-                batch_psnr = mse_to_psnr(fine_mse.item())
+                batch_psnr = mse_to_psnr(final_mse.item())
                 progress.show(loss=f"{loss.item():.4f}", psnr=f"{batch_psnr:.2f}")
                 run.log_event("train", iteration=iteration, loss=loss.item(), psnr=batch_psnr,
                               lr=config.learning_rate_at(iteration), elapsed_s=train_seconds)
@@ -268,7 +291,7 @@ def _train_locked(
 
 
 def _validate(
-    model: NerfModel, val_split: DatasetSplit, ray_bounds: RayBounds, run: RunFolder, iteration: int,
+    model: torch.nn.Module, val_split: DatasetSplit, ray_bounds: RayBounds, run: RunFolder, iteration: int,
     train_seconds: float,
 ) -> float:
     """Render one validation view (cycling through them) and log its PSNR; the render

@@ -6,7 +6,7 @@ import torch
 
 from conftest import run_python
 from nerf_backend.config import PRESETS
-from nerf_backend.model import NerfModel
+from nerf_backend.models import NerfModel
 
 
 def test_paper_preset_is_the_papers_nerf():

@@ -134,8 +134,9 @@ def test_a_dataset_from_another_tool_loads_with_the_reference_intrinsics(tiny_de
     run = tmp_path / "run"
     run_python("-m", "nerf_backend", "train", str(foreign), "--preset", "preview", "--out", str(run),
                "--iters", "3", "--no-progress")
-    config = json.loads((run / "config.json").read_text())
-    assert config["decisions"]["ray_bounds"]["kind"] == "protocol"
+    bounds = json.loads((run / "config.json").read_text())["decisions"]["ray_bounds"]
+    assert bounds["kind"] == "scene_box" and bounds["box_min"] == [-1.5] * 3 and bounds["box_max"] == [1.5] * 3
+    assert "no scene_profile.json" in bounds["reason"]
 
 
 def test_bad_dataset_gives_one_clear_line(tmp_path):

@@ -1,0 +1,100 @@
+"""The fast field: density and colour from factorised grids plus a small colour MLP.
+
+Density is a linear read-out of one ``VectorMatrixGrid`` through a shifted softplus (so a
+new field starts near-empty and smooth). Colour comes from a second grid's features
+through a two-layer MLP, with the viewing direction's encoding as an input only when the
+field is view-dependent. Colour is computed only where the caller asks (samples that carry
+weight), which is where most of the speed of the fast preset comes from.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from .dataset import SceneBounds
+from .encodings import PositionalEncoding
+from .grid_encodings import VectorMatrixGrid
+
+
+@dataclass(frozen=True)
+class GridFieldConfig:
+    resolution: int = 128  # grid vertices a side over the scene's box, at the end of training
+    # Coarse-to-fine: start at initial_resolution and grow geometrically to `resolution`,
+    # one step at each of upsample_iterations (cheap early steps, detail later).
+    initial_resolution: int = 128
+    upsample_iterations: tuple[int, ...] = ()
+    density_channels: int = 16
+    appearance_channels: int = 24
+    appearance_dims: int = 27
+    hidden_width: int = 64
+    view_dependent: bool = True
+    direction_frequencies: int = 2
+    # σ = density_scale · softplus(feature + density_shift): TensoRF's parametrisation.
+    density_shift: float = -10.0
+    density_scale: float = 25.0
+
+
+class GridField(nn.Module):
+    """``density(x [P,3]) -> [P]`` and ``colour(x [P,3], d [P,3]) -> [P,3]`` in world space.
+
+    Points outside ``box`` read the grid's border values; callers sample inside the box.
+    """
+
+    def __init__(self, config: GridFieldConfig, box: SceneBounds) -> None:
+        super().__init__()
+        self.config = config
+        self.register_buffer("box_min", torch.tensor(box.box_min, dtype=torch.float32))
+        self.register_buffer("box_max", torch.tensor(box.box_max, dtype=torch.float32))
+        self.density_grid = VectorMatrixGrid(config.density_channels, config.initial_resolution)
+        self.appearance_grid = VectorMatrixGrid(config.appearance_channels, config.initial_resolution)
+        self.appearance_basis = nn.Linear(self.appearance_grid.out_dims, config.appearance_dims, bias=False)
+        self.direction_encoding = PositionalEncoding(3, config.direction_frequencies)
+        colour_in = config.appearance_dims + (self.direction_encoding.out_dims if config.view_dependent else 0)
+        self.colour_mlp = nn.Sequential(
+            nn.Linear(colour_in, config.hidden_width), nn.ReLU(inplace=True),
+            nn.Linear(config.hidden_width, config.hidden_width), nn.ReLU(inplace=True),
+            nn.Linear(config.hidden_width, 3),
+        )
+
+    @property
+    def resolution(self) -> int:
+        return self.density_grid.resolution
+
+    def resolution_after(self, iteration: int) -> int:
+        """The schedule: the grid resolution once ``iteration`` steps have been taken."""
+        config = self.config
+        done = sum(1 for at in config.upsample_iterations if iteration >= at)
+        if done == 0:
+            return config.initial_resolution
+        ratio = (config.resolution / config.initial_resolution) ** (done / len(config.upsample_iterations))
+        return round(config.initial_resolution * ratio)
+
+    def resize(self, resolution: int) -> None:
+        self.density_grid.resize(resolution)
+        self.appearance_grid.resize(resolution)
+
+    def normalise(self, x: Tensor) -> Tensor:
+        """World points → [-1, 1] over the box."""
+        return (x - self.box_min) / (self.box_max - self.box_min) * 2.0 - 1.0
+
+    def density_from_features(self, summed: Tensor) -> Tensor:
+        return self.config.density_scale * F.softplus(summed + self.config.density_shift)
+
+    def density(self, x: Tensor) -> Tensor:
+        return self.density_from_features(self.density_grid(self.normalise(x)).sum(dim=-1))
+
+    def colour(self, x: Tensor, directions: Tensor) -> Tensor:
+        features = self.appearance_basis(self.appearance_grid(self.normalise(x)))
+        if self.config.view_dependent:
+            features = torch.cat([features, self.direction_encoding(directions)], dim=-1)
+        return torch.sigmoid(self.colour_mlp(features))
+
+    @torch.no_grad()
+    def vertex_density(self) -> Tensor:
+        """Density at every grid vertex ``[N, N, N]`` (x, y, z): within each grid cell the
+        density's pre-activation is trilinear, so these bound the density in the cell."""
+        return self.density_from_features(self.density_grid.dense().sum(dim=0))
