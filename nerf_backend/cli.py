@@ -47,6 +47,23 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
     train.add_argument("--no-progress", action="store_true", help="no progress bar")
 
+    bench = sub.add_parser("bench", help="measure the speed/accuracy trade of presets on one dataset")
+    bench.add_argument("dataset", type=Path)
+    bench.add_argument("--presets", default=None,
+                       help="comma-separated presets or variants NAME=PRESET+KEY=VALUE+... "
+                            "(default: preview,fast,auto,paper)")
+    bench.add_argument("--ablations", action="store_true",
+                       help="add the NeRF paper's ablations of the paper preset (no PE, no view dependence, "
+                            "no hierarchical sampling, 50 and 25 views)")
+    bench.add_argument("--budget-seconds", type=_positive_float, default=None, help="training seconds per variant")
+    bench.add_argument("--iters", type=_positive_int, default=None, help="or: iterations per variant")
+    bench.add_argument("--points", type=_positive_int, default=6, help="evaluations along each curve")
+    bench.add_argument("--curve-views", type=_positive_int, default=8, help="test views scored at each point")
+    bench.add_argument("--seed", type=int, default=0)
+    bench.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
+    bench.add_argument("--out", type=Path, required=True)
+    bench.add_argument("--overwrite", action="store_true")
+
     for name, help_text in (("render", "render a split's views with a trained run"),
                             ("eval", "render if needed, then score a split against its ground truth")):
         cmd = sub.add_parser(name, help=help_text)
@@ -74,6 +91,18 @@ def _run(args: argparse.Namespace) -> int:
         val = f", validation PSNR {summary.val_psnr:.2f} dB" if summary.val_psnr is not None else ""
         print(f"trained {summary.iteration} iterations in {summary.train_seconds:.1f} s "
               f"(stopped: {summary.stop_reason}){val}; run: {args.out}")
+        return 0
+
+    if args.command == "bench":
+        from .bench import DEFAULT_PRESETS, PAPER_ABLATIONS, Variant, run_bench
+
+        names = (args.presets or ("" if args.ablations else DEFAULT_PRESETS)).split(",")
+        names = [n for n in names if n] + (list(PAPER_ABLATIONS) if args.ablations else [])
+        report = run_bench(args.dataset, [Variant.parse(n) for n in names], args.out, args.budget_seconds,
+                           args.iters, points=args.points, curve_views=args.curve_views, seed=args.seed,
+                           device=args.device, overwrite=args.overwrite)
+        print((args.out / "bench.md").read_text(), end="")
+        print(f"written {args.out / 'bench.json'}, {args.out / 'bench.md'}, {args.out / 'bench.png'}")
         return 0
 
     from .inference import render_split, renders_are_current

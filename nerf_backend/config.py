@@ -33,6 +33,8 @@ class TrainConfig:
     # "protocol" for datasets without one).
     ray_bounds: str = "protocol"
     rays_per_batch: int = 1024
+    # Train on only the first N training views (the paper's 25/50/100-view ablation).
+    max_train_views: int | None = None
     iterations: int = 200_000
     learning_rate: float = 5e-4
     # Learning rate of the MLPs when the model also has grids (which use learning_rate).
@@ -116,6 +118,8 @@ PRESETS: dict[str, TrainConfig] = {
         checkpoint_every=250,
     ),
 }
+# "auto" starts from "fast" and lets the dataset decide (see auto.py).
+PRESETS["auto"] = dataclasses.replace(PRESETS["fast"], preset="auto")
 
 
 def with_overrides(config: TrainConfig, assignments: list[str]) -> TrainConfig:

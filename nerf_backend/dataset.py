@@ -36,6 +36,10 @@ class DatasetSplit:
     def __len__(self) -> int:
         return self.poses.shape[0]
 
+    def subset(self, count: int) -> "DatasetSplit":
+        """The first ``count`` views."""
+        return DatasetSplit(self.name, self.intrinsics, self.poses[:count], self.rgba[:count], self.image_paths[:count])
+
     def rgb_on_white(self, index: int | slice | Tensor = slice(None)) -> Tensor:
         """Float RGB in [0, 1] composited over white, as the reference loaders do."""
         return composite(self.rgba[index])
@@ -185,6 +189,12 @@ def load_split(dataset_dir: Path | str, split: str) -> DatasetSplit:
         rgba=torch.from_numpy(np.stack(images)),
         image_paths=paths,
     )
+
+
+def load_scene_profile(dataset_dir: Path | str) -> dict | None:
+    """``scene_profile.json`` as written by datasets_gen, or None for other tools' datasets."""
+    path = Path(dataset_dir) / "scene_profile.json"
+    return _read_json(path) if path.exists() else None
 
 
 def load_scene_bounds(dataset_dir: Path | str) -> SceneBounds | None:

@@ -17,7 +17,8 @@ from tqdm import tqdm
 
 from .cameras import camera_rays, pixel_centres
 from .config import TrainConfig, preset_config, with_overrides
-from .dataset import DatasetSplit, SceneBounds, composite, load_scene_bounds, load_split
+from .auto import auto_config
+from .dataset import DatasetSplit, SceneBounds, composite, load_scene_bounds, load_scene_profile, load_split
 from .devices import resolve_device
 from .errors import NerfError, RunError
 from .files import write_png
@@ -185,7 +186,15 @@ def _train_locked(
     if options.iterations is not None:
         config = replace(config, iterations=options.iterations)
 
+    if config.max_train_views is not None and config.max_train_views < len(train_split):
+        train_split = train_split.subset(config.max_train_views)
     ray_bounds, bounds_reason = choose_ray_bounds(config.ray_bounds, scene_bounds)
+    decisions = {"ray_bounds": {**ray_bounds.describe(), "reason": bounds_reason}}
+    if config.preset == "auto" and not options.resume:
+        config, auto_decisions = auto_config(config, train_split, ray_bounds.box, load_scene_profile(dataset))
+        decisions.update(auto_decisions)
+    elif options.resume:
+        decisions = run.read_config().get("decisions", decisions)
     run.write_config({
         "dataset": str(dataset),
         "preset": config.preset,
@@ -193,7 +202,7 @@ def _train_locked(
         "device": str(device),
         "max_seconds": max_seconds,
         "config": config.to_dict(),
-        "decisions": {"ray_bounds": {**ray_bounds.describe(), "reason": bounds_reason}},
+        "decisions": decisions,
         "background": "white (RGBA composited as rgb·α + 1 − α)",
         "image_size": [train_split.intrinsics.width, train_split.intrinsics.height],
         "train_views": len(train_split),
