@@ -1,9 +1,14 @@
 """Render NeRF datasets from Blender, faithful to the Realistic Synthetic 360 (nerf_synthetic) protocol.
 
-Pure maths (no bpy): `trajectories` (camera rig and views), `intrinsics` (pixel intrinsics of a
-Blender camera), `dataset_json` (the JSON documents), `options`.  Blender-facing: `demo_scene`,
-`blender_render`, `scene_bounds`; `generator.generate_dataset` is the in-process entry point.
-Command lines: `python -m datasets_gen` and `blender -b --python datasets_gen/generate.py -- ...`.
+Pure (no bpy, standard library only): `trajectories` (camera rig and views), `intrinsics` (pixel
+intrinsics of a Blender camera), `frame_fit` (the similarity into the protocol's frame),
+`scene_checks` (what refuses a scene), `materials` (view dependence and transparency),
+`depth_normals` and `exr` (the depth/normal files), `png_check`, `dataset_json` (the JSON
+documents), `options`, `output_dir` (folder, resume, progress file), `shards` (--merge).
+Blender-facing: `scene_facts`, `scene_bounds`, `scene_state` (undoable changes), `blender_render`,
+`demo_scene`; `generator.generate_dataset` is the in-process entry point (the add-on passes the
+open scene).  Command lines: `python -m datasets_gen` and
+`blender -b [SCENE.blend] --python datasets_gen/generate.py -- ...`.
 
 Importing the package does not import bpy (the generator imports it only when it runs), so the
 pure parts work in any Python.

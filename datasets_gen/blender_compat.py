@@ -33,6 +33,21 @@ def principled_bsdf(material: "bpy.types.Material") -> "bpy.types.Node":
     return node
 
 
+def diffuse_bsdf(material: "bpy.types.Material") -> "bpy.types.Node":
+    """The material's Diffuse BSDF, made its only shader (any Principled BSDF is removed)."""
+    tree = node_tree_of(material)
+    for node in tree.nodes:
+        if node.type == "BSDF_DIFFUSE":
+            return node
+    for node in list(tree.nodes):
+        if node.type == "BSDF_PRINCIPLED":
+            tree.nodes.remove(node)
+    node = tree.nodes.new("ShaderNodeBsdfDiffuse")
+    output = next(n for n in tree.nodes if n.type == "OUTPUT_MATERIAL")
+    tree.links.new(node.outputs[0], output.inputs["Surface"])
+    return node
+
+
 def node_input(node: "bpy.types.Node", names: Sequence[str]) -> "bpy.types.NodeSocket":
     """The first of `names` the node has: socket names changed in 4.0 ("Specular" -> "Specular IOR Level")."""
     for name in names:
@@ -45,11 +60,3 @@ def node_input(node: "bpy.types.Node", names: Sequence[str]) -> "bpy.types.NodeS
 def set_node_input(node: "bpy.types.Node", names: Sequence[str], value: Any) -> None:
     """Set the default value of the first existing input among `names`."""
     node_input(node, names).default_value = value
-
-
-def set_if_present(owner: Any, attribute: str, value: Any) -> bool:
-    """Set an RNA property that only some versions have; return whether it existed."""
-    if hasattr(owner, attribute):
-        setattr(owner, attribute, value)
-        return True
-    return False

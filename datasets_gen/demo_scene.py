@@ -7,6 +7,10 @@ and a brick-textured cone (high-frequency texture), and a thin rod carrying a th
 (minor radius 0.03: thin structures). A world colour lights it from all around (the film is
 transparent, so it is never seen directly) and a sun adds shadows.
 
+The "diffuse" variant is the same scene with every material a pure Diffuse BSDF (same colours
+and textures; no metallic, specular, clearcoat, sheen or transmission), so nothing in it
+depends on the view direction: a benchmark for the backend's view-independent model.
+
 Meshes are made with bmesh and the data API rather than operators, so the scene can be built
 into a scene that is not the active one and the result never depends on UI context.
 Everything is deterministic.
@@ -21,49 +25,59 @@ import bmesh
 import bpy
 from mathutils import Euler
 
-from .blender_compat import node_tree_of, principled_bsdf, set_node_input
+from .blender_compat import diffuse_bsdf, node_tree_of, principled_bsdf, set_node_input
 
 DEMO_SCENE_NAME = "NeRF demo"
 PEDESTAL_TOP_Z = -0.5
 
 
-def build_demo_scene(name: str = DEMO_SCENE_NAME) -> "bpy.types.Scene":
-    """Create a new scene holding the demo objects, world and sun; return it."""
+def build_demo_scene(name: str = DEMO_SCENE_NAME, variant: str = "standard") -> "bpy.types.Scene":
+    """Create a new scene holding the demo objects, world and sun; return it.
+
+    `variant` is "standard" or "diffuse" (every material a Diffuse BSDF, see the module docstring).
+    """
+    if variant not in ("standard", "diffuse"):
+        raise ValueError(f"unknown demo variant {variant!r}")
+    diffuse = variant == "diffuse"
     scene = bpy.data.scenes.new(name)
+    # Made for the protocol: a new scene's EEVEE, Filmic/AgX and opaque film would only be overridden.
+    scene.render.engine = "CYCLES"
+    scene.render.film_transparent = True
+    scene.view_settings.view_transform = "Standard"
     scene.world = _demo_world(name)
 
     pedestal = _add_object(scene, "pedestal", _cylinder_mesh("pedestal", 0.85, 0.12, 96),
                            (0.0, 0.0, PEDESTAL_TOP_Z - 0.06))
-    _assign(pedestal, _material("pedestal", (0.55, 0.50, 0.45), roughness=0.8))
+    _assign(pedestal, _material("pedestal", (0.55, 0.50, 0.45), roughness=0.8, diffuse=diffuse))
 
     sphere_radius = 0.32
     sphere = _add_object(scene, "gold sphere", _sphere_mesh("gold sphere", sphere_radius),
                          (0.38, -0.22, PEDESTAL_TOP_Z + sphere_radius))
-    _assign(sphere, _material("gold", (1.0, 0.72, 0.30), roughness=0.15, metallic=1.0))
+    _assign(sphere, _material("gold", (1.0, 0.72, 0.30), roughness=0.15, metallic=1.0, diffuse=diffuse))
 
     cube_size = 0.5
     cube = _add_object(scene, "checker cube", _cube_mesh("checker cube", cube_size),
                        (-0.38, 0.18, PEDESTAL_TOP_Z + cube_size / 2.0), rotation_z_deg=30.0)
-    _assign(cube, _textured_material("checker", "ShaderNodeTexChecker",
-                                     (0.08, 0.22, 0.80), (0.92, 0.92, 0.92), scale=4.0))
+    _assign(cube, _textured_material("checker", "ShaderNodeTexChecker", (0.08, 0.22, 0.80),
+                                     (0.92, 0.92, 0.92), scale=4.0, diffuse=diffuse))
 
     cone_height = 0.45
     cone = _add_object(scene, "brick cone", _cone_mesh("brick cone", 0.22, cone_height, 64),
                        (-0.22, -0.48, PEDESTAL_TOP_Z + cone_height / 2.0))
-    _assign(cone, _textured_material("brick", "ShaderNodeTexBrick",
-                                     (0.70, 0.22, 0.08), (0.95, 0.55, 0.20), scale=6.0))
+    _assign(cone, _textured_material("brick", "ShaderNodeTexBrick", (0.70, 0.22, 0.08),
+                                     (0.95, 0.55, 0.20), scale=6.0, diffuse=diffuse))
 
     rod_length = 0.95
     rod_xy = (0.12, 0.38)
     rod = _add_object(scene, "thin rod", _cylinder_mesh("thin rod", 0.025, rod_length, 24),
                       (rod_xy[0], rod_xy[1], PEDESTAL_TOP_Z + rod_length / 2.0))
-    _assign(rod, _material("rod", (0.60, 0.05, 0.05), roughness=0.4))
+    _assign(rod, _material("rod", (0.60, 0.05, 0.05), roughness=0.4, diffuse=diffuse))
 
     ring_major = 0.25
     ring = _add_object(scene, "thin ring", _torus_mesh("thin ring", ring_major, 0.03),
                        (rod_xy[0], rod_xy[1], PEDESTAL_TOP_Z + rod_length + ring_major),
                        rotation_x_deg=90.0, rotation_z_deg=45.0)
-    _assign(ring, _material("ring", (0.10, 0.60, 0.25), roughness=0.3))
+    _assign(ring, _material("ring", (0.10, 0.60, 0.25), roughness=0.3, diffuse=diffuse))
 
     sun_data = bpy.data.lights.new(f"{name} sun", type="SUN")
     sun_data.energy = 3.0
@@ -104,9 +118,13 @@ def _assign(obj: "bpy.types.Object", material: "bpy.types.Material") -> None:
 
 
 def _material(
-    name: str, colour: Sequence[float], roughness: float, metallic: float = 0.0
+    name: str, colour: Sequence[float], roughness: float, metallic: float = 0.0, diffuse: bool = False
 ) -> "bpy.types.Material":
+    """A Principled material, or with `diffuse` a lone Diffuse BSDF of the same colour."""
     material = bpy.data.materials.new(name)
+    if diffuse:
+        set_node_input(diffuse_bsdf(material), ["Color"], (*colour, 1.0))
+        return material
     bsdf = principled_bsdf(material)
     set_node_input(bsdf, ["Base Color"], (*colour, 1.0))
     set_node_input(bsdf, ["Roughness"], roughness)
@@ -120,9 +138,10 @@ def _textured_material(
     colour_a: Sequence[float],
     colour_b: Sequence[float],
     scale: float,
+    diffuse: bool = False,
 ) -> "bpy.types.Material":
-    """A Principled material whose base colour is a procedural texture on Generated coordinates."""
-    material = _material(name, colour_a, roughness=0.6)
+    """A material whose base colour is a procedural texture on Generated coordinates."""
+    material = _material(name, colour_a, roughness=0.6, diffuse=diffuse)
     tree = node_tree_of(material)
     coordinates = tree.nodes.new("ShaderNodeTexCoord")
     texture = tree.nodes.new(texture_node_type)
@@ -130,7 +149,8 @@ def _textured_material(
     texture.inputs["Color2"].default_value = (*colour_b, 1.0)
     texture.inputs["Scale"].default_value = scale
     tree.links.new(coordinates.outputs["Generated"], texture.inputs["Vector"])
-    tree.links.new(texture.outputs["Color"], principled_bsdf(material).inputs["Base Color"])
+    shader = diffuse_bsdf(material) if diffuse else principled_bsdf(material)
+    tree.links.new(texture.outputs["Color"], shader.inputs["Color" if diffuse else "Base Color"])
     return material
 
 

@@ -24,8 +24,9 @@ Standard library only (no numpy, no bpy) so it runs inside any Blender.
 from __future__ import annotations
 
 import math
+from array import array
 from dataclasses import asdict, dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 SENSOR_FITS = ("AUTO", "HORIZONTAL", "VERTICAL")
 
@@ -116,3 +117,59 @@ def camera_intrinsics(
         camera_angle_x=2.0 * math.atan(w / (2.0 * fl_x)),
         camera_angle_y=2.0 * math.atan(h / (2.0 * fl_y)),
     )
+
+
+@dataclass(frozen=True)
+class CameraSettings:
+    """What decides a dataset camera's intrinsics: the Blender camera and render settings.
+
+    The defaults are the protocol's camera (Blender's default camera: 50 mm lens, 36 x 24 mm
+    sensor, AUTO fit, no shift) at 800 x 800, 100 %, square pixels.
+    """
+
+    lens_mm: float = 50.0
+    sensor_width_mm: float = 36.0
+    sensor_height_mm: float = 24.0
+    sensor_fit: str = "AUTO"
+    shift_x: float = 0.0
+    shift_y: float = 0.0
+    resolution_x: int = 800
+    resolution_y: int = 800
+    resolution_percentage: int = 100
+    pixel_aspect_x: float = 1.0
+    pixel_aspect_y: float = 1.0
+
+    def intrinsics(self) -> Intrinsics:
+        """The pixel intrinsics these settings render with (ValueError when they are invalid)."""
+        return camera_intrinsics(
+            lens_mm=self.lens_mm,
+            sensor_width_mm=self.sensor_width_mm,
+            sensor_height_mm=self.sensor_height_mm,
+            sensor_fit=self.sensor_fit,
+            resolution_x=self.resolution_x,
+            resolution_y=self.resolution_y,
+            resolution_percentage=self.resolution_percentage,
+            pixel_aspect_x=self.pixel_aspect_x,
+            pixel_aspect_y=self.pixel_aspect_y,
+            shift_x=self.shift_x,
+            shift_y=self.shift_y,
+        )
+
+    def record(self) -> dict[str, Any]:
+        """Plain dict for the dataset's JSON."""
+        return asdict(self)
+
+
+def ray_length_factors(intrinsics: Intrinsics) -> "array[float]":
+    """Per pixel (rows top to bottom), the length of the ray direction whose camera-space depth is 1.
+
+    Blender's depth pass is planar (distance along the optical axis); multiplying it by this
+    factor gives the distance from the camera centre along the ray through the pixel centre:
+    sqrt(1 + ((u - cx) / fl_x)^2 + ((v - cy) / fl_y)^2) with u, v = column + 0.5, row + 0.5.
+    """
+    xs = [((column + 0.5 - intrinsics.cx) / intrinsics.fl_x) ** 2 for column in range(intrinsics.w)]
+    factors = array("d")
+    for row in range(intrinsics.h):
+        y2 = ((row + 0.5 - intrinsics.cy) / intrinsics.fl_y) ** 2
+        factors.extend(math.sqrt(1.0 + x2 + y2) for x2 in xs)
+    return factors

@@ -1,7 +1,9 @@
 """Progress over rendered views on stderr: a tqdm bar when tqdm is importable, plain lines otherwise.
 
 Blender's own Python (e.g. Debian's `blender` binary) usually has no tqdm, and a dataset
-render can take hours, so some progress must always be shown.
+render can take hours, so some progress, with the time left, must always be shown.  The total
+counts only the views this run renders (a resumed run skips the others), so the estimate is
+not skewed by views that take no time.
 """
 
 from __future__ import annotations
@@ -38,8 +40,10 @@ class ViewProgress:
             self._bar.update(1)
         else:
             elapsed = time.monotonic() - self._start
+            left = elapsed / self._done * (self._total - self._done)
             print(
-                f"datasets_gen: {self._done}/{self._total} views ({split} r_{index}), {elapsed:.1f} s",
+                f"datasets_gen: {self._done}/{self._total} views ({split} r_{index}), "
+                f"{elapsed:.1f} s, about {_duration(left)} left",
                 file=sys.stderr,
                 flush=True,
             )
@@ -54,3 +58,13 @@ class ViewProgress:
 
     def __exit__(self, *exc_info: object) -> None:
         self.close()
+
+
+def _duration(seconds: float) -> str:
+    """1 h 02 min / 3 min 05 s / 12 s."""
+    seconds = int(round(seconds))
+    if seconds >= 3600:
+        return f"{seconds // 3600} h {seconds % 3600 // 60:02d} min"
+    if seconds >= 60:
+        return f"{seconds // 60} min {seconds % 60:02d} s"
+    return f"{seconds} s"

@@ -1,92 +1,210 @@
-"""World-space bounds of everything that renders as a surface, as Blender evaluates it.
+"""What renders, where: the renderable geometry's bounds, bounding sphere, materials and lights.
 
-The NeRF backend sets its near/far planes and sampling box from these bounds, so they use the
-evaluated geometry (modifiers, geometry-node instances, curve bevels) rather than the objects'
-unevaluated bound boxes.  Pure Python over vertices keeps it numpy-free (Blender builds without
-numpy exist); that is fast enough for the demo and for scenes of a few million vertices.
+The fit transform and the backend's sampling box come from these, so they use the evaluated
+geometry (modifiers, geometry-node instances, curve bevels) of exactly what the camera sees:
+objects and collections hidden from render, excluded or indirect-only collections and objects
+invisible to camera rays are left out.  Blender only evaluates what the viewport shows, so
+objects hidden in the viewport but rendered are revealed first (through the journal, undone
+afterwards) and modifiers take their render visibility.
+
+Pure Python over vertices keeps it numpy-free (Blender builds without numpy exist): fast
+enough for scenes of a few million vertices.
 """
 
 from __future__ import annotations
 
 from array import array
+from dataclasses import dataclass, field
 from typing import Iterator, Optional
 
 import bpy
+from mathutils import Vector
 
-from .options import DatasetGenError
+from .frame_fit import bounding_sphere_radius
+from .materials import NO_MATERIAL
+from .scene_state import SettingsJournal
 
 #: Object types whose evaluated geometry can be turned into a mesh and appears in renders.
-SURFACE_OBJECT_TYPES = {"MESH", "CURVE", "SURFACE", "FONT", "META"}
+SURFACE_OBJECT_TYPES = {"MESH", "CURVE", "SURFACE", "FONT", "META", "CURVES", "POINTCLOUD", "VOLUME"}
+#: Of those, the ones `to_mesh` can measure (hair curves, point clouds and volumes cannot).
+MESHABLE_TYPES = {"MESH", "CURVE", "SURFACE", "FONT", "META"}
 
-Bounds = tuple[list[float], list[float]]
+
+@dataclass
+class Geometry:
+    """The renderable part of a scene, in Blender's world."""
+
+    low: Optional[list[float]] = None
+    high: Optional[list[float]] = None
+    radius: float = 0.0  # farthest vertex from the centre of [low, high]
+    objects: list[str] = field(default_factory=list)  # renderable surface objects (instancers named)
+    hidden: list[str] = field(default_factory=list)  # surface objects left out (hidden from render/camera)
+    others: list[str] = field(default_factory=list)  # non-surface objects (lights, empties, rigs...)
+    materials: dict[str, list[str]] = field(default_factory=dict)  # material name -> objects using it
+    lights: list[dict] = field(default_factory=list)  # render-visible lights, Blender world
+
+    @property
+    def centre(self) -> list[float]:
+        assert self.low is not None and self.high is not None
+        return [(lo + hi) / 2.0 for lo, hi in zip(self.low, self.high)]
 
 
-def _render_hidden_collection_objects(scene: "bpy.types.Scene") -> set[str]:
-    """Names of objects that sit only inside collections disabled for rendering."""
+def render_view_layer(scene: "bpy.types.Scene") -> "bpy.types.ViewLayer":
+    """The view layer the dataset renders: the active one if it renders, else the first that does."""
+    active = getattr(bpy.context, "view_layer", None)
+    if bpy.context.scene == scene and active is not None and active.use:
+        for layer in scene.view_layers:
+            if layer == active:
+                return layer
+    for layer in scene.view_layers:
+        if layer.use:
+            return layer
+    return scene.view_layers[0]
+
+
+def reveal_render_visible(scene: "bpy.types.Scene", view_layer: "bpy.types.ViewLayer",
+                          journal: SettingsJournal) -> None:
+    """Make what renders also evaluate in the viewport depsgraph (undone by the journal).
+
+    Objects disabled in viewports or hidden with H are not evaluated at all; collections can
+    be disabled in viewports; modifiers can differ between viewport and render.
+    """
+    def walk(layer_collection: "bpy.types.LayerCollection") -> None:
+        collection = layer_collection.collection
+        if layer_collection.exclude or collection.hide_render:
+            return
+        if layer_collection.hide_viewport:
+            journal.set(layer_collection, "hide_viewport", False)
+        if collection.hide_viewport:
+            journal.set(collection, "hide_viewport", False)
+        for child in layer_collection.children:
+            walk(child)
+
+    walk(view_layer.layer_collection)
+    for obj in scene.objects:
+        if obj.hide_render:
+            continue
+        if obj.hide_viewport:
+            journal.set(obj, "hide_viewport", False)
+        if obj.hide_get(view_layer=view_layer):
+            obj.hide_set(False, view_layer=view_layer)
+            journal.on_restore(f"{obj.name} hidden", lambda o=obj: o.hide_set(True, view_layer=view_layer))
+        for modifier in obj.modifiers:
+            if modifier.show_viewport != modifier.show_render:
+                journal.set(modifier, "show_viewport", modifier.show_render)
+    view_layer.update()
+
+
+def _camera_invisible_objects(view_layer: "bpy.types.ViewLayer") -> set[str]:
+    """Objects only in collections that do not render to the camera (hidden, excluded, indirect-only)."""
     hidden: set[str] = set()
     visible: set[str] = set()
 
-    def walk(collection: "bpy.types.Collection", parent_hidden: bool) -> None:
-        is_hidden = parent_hidden or collection.hide_render
+    def walk(layer_collection: "bpy.types.LayerCollection", parent_hidden: bool) -> None:
+        collection = layer_collection.collection
+        is_hidden = (parent_hidden or collection.hide_render or layer_collection.exclude
+                     or layer_collection.indirect_only)
         for obj in collection.objects:
             (hidden if is_hidden else visible).add(obj.name)
-        for child in collection.children:
+        for child in layer_collection.children:
             walk(child, is_hidden)
 
-    walk(scene.collection, False)
+    walk(view_layer.layer_collection, False)
     return hidden - visible
 
 
-def _renderable_instances(
-    depsgraph: "bpy.types.Depsgraph", hidden_names: set[str]
-) -> Iterator[tuple["bpy.types.Object", "object"]]:
-    """(evaluated object, world matrix) of each surface instance that is visible to the camera."""
-    for instance in depsgraph.object_instances:
-        obj = instance.object
-        if obj.type not in SURFACE_OBJECT_TYPES:
-            continue
-        owner = instance.parent if instance.is_instance and instance.parent else obj
-        original = owner.original
-        if original.hide_render or original.name in hidden_names:
-            continue
-        if not getattr(obj.original, "visible_camera", True):
-            continue
-        yield obj, instance.matrix_world.copy()
+def _renders(obj: "bpy.types.Object", hidden_names: set[str]) -> bool:
+    original = obj.original
+    return not (original.hide_render or original.name in hidden_names
+                or not getattr(original, "visible_camera", True))
 
 
-def scene_bounds(scene: "bpy.types.Scene") -> Bounds:
-    """Axis-aligned (min, max) of all renderable surface geometry in world space.
+def _instances(
+    view_layer: "bpy.types.ViewLayer", hidden_names: set[str]
+) -> Iterator[tuple["bpy.types.Object", "bpy.types.Object", object, bool]]:
+    """(evaluated object, its owner: the instancer or itself, world matrix, renders) per instance.
 
-    Raises DatasetGenError when the scene has no such geometry (nothing to reconstruct).
-    Objects hidden only in the viewport are not in Blender's viewport depsgraph and are missed.
+    An instance renders when its instancer does and the instanced object is not itself hidden
+    from render; the instanced object's own collections do not matter (a common set-up keeps
+    the source collection excluded and instances it elsewhere).
     """
-    view_layer = scene.view_layers[0]
+    for instance in view_layer.depsgraph.object_instances:
+        obj = instance.object
+        if instance.is_instance and instance.parent:
+            owner = instance.parent
+            renders = _renders(owner, hidden_names) and _renders(obj, set())
+        else:
+            owner = obj
+            renders = _renders(obj, hidden_names)
+        yield obj, owner, instance.matrix_world.copy(), renders
+
+
+def collect_geometry(scene: "bpy.types.Scene", view_layer: "bpy.types.ViewLayer") -> Geometry:
+    """Bounds, bounding sphere, objects, materials and lights of what renders (call after reveal)."""
     view_layer.update()
-    depsgraph = view_layer.depsgraph
-    hidden_names = _render_hidden_collection_objects(scene)
-    low: Optional[list[float]] = None
-    high: Optional[list[float]] = None
-    for obj, matrix in _renderable_instances(depsgraph, hidden_names):
-        mesh = obj.to_mesh()
-        try:
-            coordinates = array("f", bytes(4 * 3 * len(mesh.vertices)))
-            mesh.vertices.foreach_get("co", coordinates)
-        finally:
-            obj.to_mesh_clear()
-        if not coordinates:
+    hidden_names = _camera_invisible_objects(view_layer)
+    geometry = Geometry()
+    points = array("d")
+    renderable: set[str] = set()
+    for obj, owner, matrix, renders in _instances(view_layer, hidden_names):
+        if obj.type == "LIGHT":
+            if not (owner.original.hide_render or owner.original.name in hidden_names):
+                geometry.lights.append(_light_record(obj, matrix))
             continue
-        rows = [tuple(matrix[r]) for r in range(3)]
-        for start in range(0, len(coordinates), 3):
-            x, y, z = coordinates[start], coordinates[start + 1], coordinates[start + 2]
-            point = [m0 * x + m1 * y + m2 * z + m3 for m0, m1, m2, m3 in rows]
-            if low is None or high is None:
-                low, high = list(point), list(point)
-                continue
-            for axis in range(3):
-                if point[axis] < low[axis]:
-                    low[axis] = point[axis]
-                elif point[axis] > high[axis]:
-                    high[axis] = point[axis]
-    if low is None or high is None:
-        raise DatasetGenError(f"scene {scene.name!r} has no renderable mesh or curve geometry")
-    return low, high
+        if obj.type not in SURFACE_OBJECT_TYPES or not renders:
+            continue
+        renderable.add(owner.original.name)
+        slots = [slot.material.name if slot.material else NO_MATERIAL for slot in obj.material_slots]
+        for name in slots or [NO_MATERIAL]:
+            users = geometry.materials.setdefault(name, [])
+            if owner.original.name not in users:
+                users.append(owner.original.name)
+        if obj.type in MESHABLE_TYPES:
+            _append_vertices(obj, matrix, points)
+        else:
+            _append_box(obj, matrix, points)
+    geometry.objects = sorted(renderable)
+    for obj in scene.objects:
+        if obj.name in renderable:
+            continue
+        (geometry.hidden if obj.type in SURFACE_OBJECT_TYPES else geometry.others).append(obj.name)
+    if points:
+        low = [min(points[axis::3]) for axis in range(3)]
+        high = [max(points[axis::3]) for axis in range(3)]
+        geometry.low, geometry.high = low, high
+        geometry.radius = bounding_sphere_radius(geometry.centre, points)
+    return geometry
+
+
+def _append_vertices(obj: "bpy.types.Object", matrix: object, points: "array[float]") -> None:
+    mesh = obj.to_mesh()
+    try:
+        coordinates = array("f", bytes(4 * 3 * len(mesh.vertices)))
+        mesh.vertices.foreach_get("co", coordinates)
+    finally:
+        obj.to_mesh_clear()
+    rows = [tuple(matrix[r]) for r in range(3)]  # type: ignore[index]
+    (a0, a1, a2, a3), (b0, b1, b2, b3), (c0, c1, c2, c3) = rows
+    for start in range(0, len(coordinates), 3):
+        x, y, z = coordinates[start], coordinates[start + 1], coordinates[start + 2]
+        points.extend((a0 * x + a1 * y + a2 * z + a3, b0 * x + b1 * y + b2 * z + b3, c0 * x + c1 * y + c2 * z + c3))
+
+
+def _append_box(obj: "bpy.types.Object", matrix: object, points: "array[float]") -> None:
+    """Hair curves, point clouds, volumes: their evaluated bounding box corners stand in for vertices."""
+    for corner in obj.bound_box:
+        world = matrix @ Vector(corner)  # type: ignore[operator]
+        points.extend((world.x, world.y, world.z))
+
+
+def _light_record(obj: "bpy.types.Object", matrix: object) -> dict:
+    light = obj.data
+    direction = -Vector([matrix[r][2] for r in range(3)]).normalized()  # type: ignore[index]
+    return {
+        "name": obj.original.name,
+        "type": light.type,
+        "energy": float(light.energy),
+        "color": [float(c) for c in light.color],
+        "location_blender": [float(matrix[r][3]) for r in range(3)],  # type: ignore[index]
+        "direction": [float(c) for c in direction],
+    }

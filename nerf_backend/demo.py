@@ -54,8 +54,8 @@ def main(argv: list[str] | None = None) -> int:
                    "--val-views", str(args.val_views), "--test-views", str(args.test_views),
                    "--samples", str(args.samples), "--seed", str(args.seed)]
         if dataset.exists():
-            print(f"== dataset: {dataset} is incomplete (an interrupted demo); rendering it again")
-            command.append("--overwrite")
+            print(f"== dataset: {dataset} is incomplete (an interrupted demo); resuming it")
+            command.append("--resume")
         _stage("dataset", command, timings)
 
     train = [python, "-m", "nerf_backend", "train", str(dataset), "--out", str(run),

@@ -13,7 +13,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import imageio.v2 as imageio
 import numpy as np
+import OpenEXR
 import pytest
 from PIL import Image
 
@@ -56,6 +58,11 @@ def load_split(dataset: Path, split: str) -> dict:
     return json.loads((dataset / f"transforms_{split}.json").read_text())
 
 
+def read_exr(path: Path) -> dict[str, np.ndarray]:
+    with OpenEXR.File(str(path)) as image:
+        return {name: np.array(channel.pixels) for name, channel in image.channels().items()}
+
+
 def expected_poses(split: str, count: int) -> list[tr.RigPose]:
     if split == "test":
         return tr.test_spiral_poses(count)
@@ -80,10 +87,16 @@ def test_layout_follows_nerf_synthetic(demo_dataset: Path) -> None:
         for key in ("camera_angle_x", "fl_x", "fl_y", "cx", "cy", "w", "h", "frames", "generator"):
             assert key in document, f"{split}: missing {key}"
         assert len(document["frames"]) == count
+        # Depth and normal EXRs by default for the test split only (--depth-normals test).
+        extra = {"depth_file_path", "normal_file_path"} if split == "test" else set()
+        assert ("depth_normals" in document) == (split == "test")
         for index, frame in enumerate(document["frames"]):
-            assert set(frame) == {"file_path", "rotation", "transform_matrix"}
+            assert set(frame) == {"file_path", "rotation", "transform_matrix"} | extra
             assert frame["file_path"] == f"./{split}/r_{index}"  # no extension, as the loaders expect
             assert (demo_dataset / (frame["file_path"] + ".png")).is_file()
+            for key in extra:
+                assert frame[key] == f"./{split}/r_{index}_{key.split('_')[0]}.exr"
+                assert (demo_dataset / frame[key]).is_file()
             matrix = np.asarray(frame["transform_matrix"])
             assert matrix.shape == (4, 4)
             np.testing.assert_allclose(matrix[3], [0, 0, 0, 1])
@@ -151,13 +164,74 @@ def test_generator_records_the_settings(demo_dataset: Path) -> None:
     assert record["blender_version"].startswith(("5.", "4."))
     assert record["image"] == {"file_format": "PNG", "color_mode": "RGBA", "color_depth": "8"}
     assert record["camera"]["lens_mm"] == 50.0 and record["camera"]["sensor_fit"] == "AUTO"
+    assert record["depth_normals"] == "test" and record["allow_missing"] is False
+    assert record["scene_checks"]["errors"] == [] and record["scene_checks"]["notes"] == []
+    settings = record["settings"]
+    assert settings["scene"] == {"source": "demo", "demo_variant": "standard"}
+    assert settings["frame"] == "blender" and settings["samples"] == 8 and settings["views"] == SPLIT_VIEWS
     assert load_split(demo_dataset, "train")["generator"] == record
+
+
+def test_the_demo_is_recorded_in_the_identity_frame(demo_dataset: Path) -> None:
+    """The demo is modelled in the protocol frame: world_to_nerf is the identity, in every JSON."""
+    profile = json.loads((demo_dataset / "scene_profile.json").read_text())
+    for document in [profile] + [load_split(demo_dataset, split) for split in SPLIT_VIEWS]:
+        frame = document["world_to_nerf"]
+        assert frame["scale"] == 1.0 and frame["translation"] == [0.0, 0.0, 0.0]
+        np.testing.assert_array_equal(frame["matrix"], np.eye(4))
+        assert "demo" in frame["rule"] and "identity" in frame["rule"]
+    # The gold sphere is metallic: the standard demo is view-dependent; its profile says which and why.
+    assert profile["view_dependent"] is True and profile["transparency"] is False
+    gold = next(material for material in profile["materials"] if material["name"] == "gold")
+    assert gold["view_dependent"] and any("metallic 1" in reason for reason in gold["reasons"])
+    assert gold["objects"] == ["gold sphere"]
+    assert profile["image_size"] == [SIZE, SIZE]
+    assert [light["type"] for light in profile["lights"]] == ["SUN"]
+    assert profile["world"]["kind"] == "uniform colour"
+
+
+def test_public_nerf_synthetic_loader_steps(demo_dataset: Path) -> None:
+    """What the reference loaders do, step by step: JSON, file_path + ".png", RGBA / 255 on white,
+    focal from camera_angle_x, 4x4 poses; nothing else in the dataset is needed."""
+    for split in SPLIT_VIEWS:
+        meta = json.loads((demo_dataset / f"transforms_{split}.json").read_text())
+        images = np.stack([imageio.imread(demo_dataset / (frame["file_path"] + ".png")) for frame in meta["frames"]])
+        poses = np.stack([np.array(frame["transform_matrix"], dtype=np.float32) for frame in meta["frames"]])
+        images = images.astype(np.float32) / 255.0
+        assert images.shape == (SPLIT_VIEWS[split], SIZE, SIZE, 4) and poses.shape == (SPLIT_VIEWS[split], 4, 4)
+        rgb = images[..., :3] * images[..., 3:] + (1.0 - images[..., 3:])  # white background
+        assert rgb.min() >= 0.0 and rgb.max() <= 1.0 and (rgb == 1.0).all(axis=-1).mean() > 0.2
+        height, width = images.shape[1:3]
+        focal = 0.5 * width / np.tan(0.5 * float(meta["camera_angle_x"]))
+        assert focal == pytest.approx(meta["fl_x"]) and (height, width) == (meta["h"], meta["w"])
+
+
+def test_diffuse_demo_variant_is_view_independent() -> None:
+    """--demo-variant diffuse: same scene, every material a Diffuse BSDF; --check renders nothing."""
+    result = run_module("--demo", "--demo-variant", "diffuse", "--check")
+    assert result.returncode == 0, result.stderr
+    profile = json.loads(result.stdout[result.stdout.index("\n{\n") + 1:] if "\n{\n" in result.stdout
+                         else result.stdout)
+    assert profile["view_dependent"] is False and profile["transparency"] is False
+    assert {material["name"] for material in profile["materials"]} == {
+        "pedestal", "gold", "checker", "brick", "rod", "ring"}
+    assert not any(material["view_dependent"] for material in profile["materials"])
+    assert profile["world_to_nerf"]["scale"] == 1.0
+
+
+def test_a_gpu_that_is_not_there_is_a_clear_error(tmp_path: Path) -> None:
+    out = tmp_path / "never"
+    result = run_module(*DEMO_ARGS, "--device", "OPTIX", "--out", str(out))
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    line = result.stderr.strip().splitlines()[-1]
+    assert "--device OPTIX" in line and "--device CPU" in line
+    assert not out.exists()
 
 
 def test_scene_profile_bounds_hold_every_rendered_pixel(demo_dataset: Path) -> None:
     """Bounds are small, non-degenerate, and their projection covers each view's opaque pixels."""
     profile = json.loads((demo_dataset / "scene_profile.json").read_text())
-    assert profile["version"] == 1 and profile["source"] == "demo"
+    assert profile["version"] == 2 and profile["source"] == "demo"
     low, high = np.asarray(profile["bounds"]["min"]), np.asarray(profile["bounds"]["max"])
     assert np.all(high - low > 0.5), "degenerate bounds"
     # Inside the cube [-1.5, 1.5]^3 that nerf_synthetic scenes are conventionally assumed to fill.
@@ -254,8 +328,7 @@ def test_intrinsics_match_a_real_render(marker_renders: Path, case: str) -> None
 # --- (c) `blender -b --python datasets_gen/generate.py` with a Blender executable -------------
 
 
-@pytest.fixture(scope="module")
-def blender_executable() -> str:
+def require_blender() -> str:
     """Path of a `blender` executable; skip without one unless NERF_REQUIRE_BLENDER=1 (then fail)."""
     blender = shutil.which("blender")
     if blender is None:
@@ -263,6 +336,11 @@ def blender_executable() -> str:
             pytest.fail("NERF_REQUIRE_BLENDER=1 but no `blender` executable is on PATH")
         pytest.skip("no `blender` executable on PATH (set NERF_REQUIRE_BLENDER=1 to make this a failure)")
     return blender
+
+
+@pytest.fixture(scope="module")
+def blender_executable() -> str:
+    return require_blender()
 
 
 @pytest.mark.blender_binary
@@ -296,6 +374,13 @@ def test_blender_binary_entry_point_matches_module(
     reference_bounds = json.loads((demo_dataset / "scene_profile.json").read_text())["bounds"]
     for key in ("min", "max"):
         np.testing.assert_allclose(bounds[key], reference_bounds[key], atol=1e-6)
+    # Blender 3.4 writes its render passes as a single-part EXR (5.x: one part per pass): same depth.
+    for index in range(SPLIT_VIEWS["test"]):
+        produced_depth = read_exr(out / "test" / f"r_{index}_depth.exr")
+        reference_depth = read_exr(demo_dataset / "test" / f"r_{index}_depth.exr")
+        both = (produced_depth["Z"] > 0) & (reference_depth["Z"] > 0)
+        assert both.sum() > 50
+        np.testing.assert_allclose(produced_depth["Z"][both], reference_depth["Z"][both], atol=1e-3)
 
 
 # --- (d) never clobber a folder, never leave half a dataset; bad input is one clear line -------

@@ -1,0 +1,164 @@
+"""Which materials look different from different directions, decided from a plain description.
+
+The backend models view dependence (and transparency) only when the scene needs it, so the
+scene profile classifies each material that renders.  Blender-facing code (`scene_facts`)
+describes a material as the shader nodes Cycles evaluates (reachable from the Cycles output,
+through groups), each with the inputs that matter (value, whether a link drives it) and which
+of its outputs are used; the decision here is pure and conservative: an input driven by a link
+(e.g. a texture) counts as non-zero.
+
+Covers Blender 3.x and 4.x+ socket names ("Specular" -> "Specular IOR Level", "Clearcoat" ->
+"Coat Weight", "Sheen" -> "Sheen Weight", "Transmission" -> "Transmission Weight").
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any, Mapping, Optional, Sequence
+
+#: Principled BSDF lobes that depend on the view direction: (reason, socket names across versions).
+PRINCIPLED_VIEW_DEPENDENT = (
+    ("metallic", ("Metallic",)),
+    ("specular", ("Specular IOR Level", "Specular")),
+    ("transmission", ("Transmission Weight", "Transmission")),
+    ("clearcoat", ("Coat Weight", "Clearcoat")),
+    ("sheen", ("Sheen Weight", "Sheen")),
+)
+PRINCIPLED_TRANSMISSION = ("Transmission Weight", "Transmission")
+
+#: Whole nodes whose output depends on the view direction.
+VIEW_DEPENDENT_NODES = {
+    "BSDF_GLOSSY": "glossy BSDF",
+    "BSDF_ANISOTROPIC": "anisotropic glossy BSDF",
+    "BSDF_METALLIC": "metallic BSDF",
+    "EEVEE_SPECULAR": "specular BSDF",
+    "BSDF_GLASS": "glass BSDF (transmission)",
+    "BSDF_REFRACTION": "refraction BSDF (transmission)",
+    "BSDF_SHEEN": "sheen BSDF",
+    "BSDF_VELVET": "velvet BSDF (sheen)",
+    "BSDF_HAIR": "hair BSDF (glossy)",
+    "BSDF_HAIR_PRINCIPLED": "principled hair BSDF (glossy)",
+    "BSDF_TOON": "toon BSDF",
+    "FRESNEL": "Fresnel node (uses the viewing angle)",
+    "LAYER_WEIGHT": "Layer Weight node (uses the viewing angle)",
+}
+#: Geometry node outputs that depend on the view direction.
+VIEW_DEPENDENT_OUTPUTS = {"NEW_GEOMETRY": ("Incoming", "Backfacing")}
+
+TRANSPARENT_NODES = {
+    "BSDF_TRANSPARENT": "transparent BSDF",
+    "HOLDOUT": "holdout",
+    "BSDF_GLASS": "glass BSDF",
+    "BSDF_REFRACTION": "refraction BSDF",
+    "VOLUME_ABSORPTION": "volume",
+    "VOLUME_SCATTER": "volume",
+    "VOLUME_COEFFICIENTS": "volume",
+    "PRINCIPLED_VOLUME": "volume",
+}
+
+NO_MATERIAL = "(no material)"
+
+
+@dataclass
+class MaterialProfile:
+    """The verdict on one material, with the reasons a reader can check."""
+
+    name: str
+    view_dependent: bool
+    reasons: list[str] = field(default_factory=list)
+    transparent: bool = False
+    transparency_reasons: list[str] = field(default_factory=list)
+    objects: list[str] = field(default_factory=list)
+
+    def record(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _input(node: Mapping[str, Any], names: Sequence[str]) -> Optional[Mapping[str, Any]]:
+    inputs = node.get("inputs", {})
+    for name in names:
+        if name in inputs:
+            return inputs[name]
+    return None
+
+
+def _describe_input(socket: Mapping[str, Any]) -> str:
+    if socket.get("linked"):
+        return "driven by a link"
+    return f"{socket.get('value', 0.0):g}"
+
+
+def _nonzero(socket: Optional[Mapping[str, Any]]) -> bool:
+    if socket is None:
+        return False
+    if socket.get("linked"):
+        return True
+    value = socket.get("value", 0.0)
+    return isinstance(value, (int, float)) and value > 0.0
+
+
+def _principled(node: Mapping[str, Any], profile: MaterialProfile) -> None:
+    label = f"Principled BSDF {node.get('name', '')!r}"
+    for reason, names in PRINCIPLED_VIEW_DEPENDENT:
+        socket = _input(node, names)
+        if _nonzero(socket):
+            assert socket is not None
+            profile.reasons.append(f"{label}: {reason} {_describe_input(socket)}")
+    transmission = _input(node, PRINCIPLED_TRANSMISSION)
+    if _nonzero(transmission):
+        assert transmission is not None
+        profile.transparency_reasons.append(f"{label}: transmission {_describe_input(transmission)}")
+    alpha = _input(node, ("Alpha",))
+    if alpha is not None and (alpha.get("linked") or float(alpha.get("value", 1.0)) < 1.0):
+        profile.transparency_reasons.append(f"{label}: alpha {_describe_input(alpha)}")
+
+
+def classify_material(description: Mapping[str, Any]) -> MaterialProfile:
+    """Classify one material description (see the module docstring for its shape).
+
+    A material without nodes renders in Cycles as a plain diffuse surface, and so does an
+    object slot without a material, so both are view-independent and opaque.
+    """
+    profile = MaterialProfile(
+        name=str(description.get("name", NO_MATERIAL)),
+        view_dependent=False,
+        objects=sorted(description.get("objects", ())),
+    )
+    for node in description.get("nodes", ()):
+        node_type = node.get("type", "")
+        if node_type == "BSDF_PRINCIPLED":
+            _principled(node, profile)
+        if node_type in VIEW_DEPENDENT_NODES:
+            profile.reasons.append(f"{VIEW_DEPENDENT_NODES[node_type]} {node.get('name', '')!r}")
+        for output in VIEW_DEPENDENT_OUTPUTS.get(node_type, ()):
+            if output in node.get("linked_outputs", ()):
+                profile.reasons.append(f"{node.get('name', node_type)!r} output {output!r} (depends on the view)")
+        if node_type in TRANSPARENT_NODES:
+            profile.transparency_reasons.append(f"{TRANSPARENT_NODES[node_type]} {node.get('name', '')!r}")
+    profile.view_dependent = bool(profile.reasons)
+    profile.transparent = bool(profile.transparency_reasons)
+    return profile
+
+
+def choose_output_node(outputs: Sequence[Mapping[str, Any]], engine_target: str = "CYCLES") -> Optional[int]:
+    """Index of the output node an engine uses, as Blender picks it (ntreeShaderOutputNode).
+
+    `outputs` lists the tree's output nodes in tree order, each with "target" ("ALL", "CYCLES",
+    "EEVEE") and "is_active_output".  An exact target beats "ALL"; among equals, the active one.
+    """
+    chosen: Optional[int] = None
+    for index, node in enumerate(outputs):
+        target = node.get("target", "ALL")
+        if target not in ("ALL", engine_target):
+            continue
+        if chosen is None:
+            chosen = index
+            continue
+        current = outputs[chosen]
+        current_exact = current.get("target", "ALL") == engine_target
+        if target == engine_target and not current_exact:
+            chosen = index
+        elif (target == engine_target) == current_exact:
+            if node.get("is_active_output") and not current.get("is_active_output"):
+                chosen = index
+    return chosen
