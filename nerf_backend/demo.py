@@ -36,9 +36,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--val-views", type=int, default=10)
     parser.add_argument("--test-views", type=int, default=50)
     parser.add_argument("--samples", type=int, default=64, help="Cycles samples per pixel")
-    # fast: measured 34.3 dB mean test PSNR after 120 s on this dataset, where preview
-    # reached 28.8 dB after 240 s (both on 2 CPU cores; `python -m nerf_backend bench`).
-    parser.add_argument("--preset", default="fast")
+    # auto: measured best at equal time by `python -m nerf_backend bench out/demo/dataset
+    # --presets fast,auto,preview --budget-seconds 120` on 2 CPU cores (test PSNR after 120 s:
+    # auto 36.28 dB, fast 35.39 dB, preview 26.12 dB; docs/bench_demo_100px.md).
+    parser.add_argument("--preset", default="auto")
     parser.add_argument("--train-seconds", type=float, default=120.0)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
