@@ -101,7 +101,6 @@ def bench_variant(dataset: str, variant: Variant, out_dir: str, budget_seconds: 
     from .devices import resolve_device
     from .trainer import TrainOptions, train
 
-    torch.set_num_threads(torch.get_num_threads())
     device = resolve_device(device_name)
     test = load_split(dataset, "test")
     curve_indices = sorted({round(i) for i in np.linspace(0, len(test) - 1, min(curve_views, len(test)))})
