@@ -81,10 +81,6 @@ class NerfField(nn.Module):
             raise ValueError(f"unknown density activation {self.config.density_activation!r}")
         return density, h
 
-    def density(self, positions: Tensor) -> Tensor:
-        """Density alone, for samplers that only need σ."""
-        return self.density_features(positions)[0]
-
     def forward(self, positions: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
         density, h = self.density_features(positions)
         if self.config.view_dependent:
