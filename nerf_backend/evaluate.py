@@ -8,9 +8,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
 from PIL import Image
 
-from .dataset import DatasetSplit
+from .dataset import DatasetSplit, composite
 from .errors import NerfError
 from .metrics import psnr, ssim
 
@@ -20,8 +21,8 @@ def read_rgb(path: Path) -> np.ndarray:
     if not path.is_file():
         raise NerfError(f"{path}: render not found")
     with Image.open(path) as image:
-        rgba = np.asarray(image.convert("RGBA"), dtype=np.float32) / 255.0
-    return rgba[..., :3] * rgba[..., 3:] + (1.0 - rgba[..., 3:])
+        rgba = torch.from_numpy(np.asarray(image.convert("RGBA")).copy())
+    return composite(rgba).numpy()
 
 
 def score_renders(split: DatasetSplit, renders_dir: Path) -> dict:

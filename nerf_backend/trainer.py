@@ -210,15 +210,15 @@ def _train_locked(
 
     torch.manual_seed(seed)
     model = build_model(config, ray_bounds.box).to(device)
-    optimizer = _optimizer(model, config)
     batch_generator = torch.Generator().manual_seed(seed)
     sample_generator = torch.Generator(device=device).manual_seed(seed + 1)
     iteration, train_seconds = 0, 0.0
-    if options.resume and run.checkpoint_path.exists():
-        state = run.load_checkpoint(device)
-        model.match_state(state["model"])
+    state = run.load_checkpoint(device) if options.resume and run.checkpoint_path.exists() else None
+    if state is not None:
+        model.match_state(state["model"])  # the grids' resolution at the checkpoint
         model.load_state_dict(state["model"])
-        optimizer = _optimizer(model, config)
+    optimizer = _optimizer(model, config)  # built for the parameters as they now are
+    if state is not None:
         optimizer.load_state_dict(state["optimizer"])
         batch_generator.set_state(state["batch_rng"])
         sample_generator.set_state(state["sample_rng"].to(sample_generator.get_state().device))
