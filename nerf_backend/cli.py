@@ -26,6 +26,7 @@ def _positive_float(text: str) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     from .config import PRESETS
+    from .models import GRID_RENDER_CHUNK
     from .render_views import DEFAULT_CHUNK
 
     parser = argparse.ArgumentParser(prog="python -m nerf_backend", description=__doc__)
@@ -70,8 +71,9 @@ def build_parser() -> argparse.ArgumentParser:
         cmd.add_argument("run", type=Path)
         cmd.add_argument("--split", default="test")
         cmd.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
-        cmd.add_argument("--chunk", type=_positive_int, default=DEFAULT_CHUNK,
-                         help=f"rays per forward pass; bounds memory (default {DEFAULT_CHUNK})")
+        cmd.add_argument("--chunk", type=_positive_int, default=None,
+                         help=f"rays per forward pass; bounds memory (default: the model's, {DEFAULT_CHUNK} "
+                              f"for NeRF MLPs, {GRID_RENDER_CHUNK} for the grid model)")
         cmd.add_argument("--no-progress", action="store_true")
     return parser
 

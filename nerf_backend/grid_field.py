@@ -94,6 +94,20 @@ class GridField(nn.Module):
         return torch.sigmoid(self.colour_mlp(features))
 
     @torch.no_grad()
+    def density_volume(self) -> Tensor:
+        """The density's pre-activation at every vertex, ``[1, 1, N, N, N]`` laid out (z, y, x)
+        for ``grid_sample``. Each grid component is bilinear × linear, i.e. trilinear, so a
+        trilinear read of this volume equals the factorised grid's value: one 1-channel
+        lookup instead of six many-channel ones (what inference uses)."""
+        return self.density_grid.dense().sum(dim=0).permute(2, 1, 0)[None, None].contiguous()
+
+    def density_from_volume(self, volume: Tensor, x: Tensor) -> Tensor:
+        """``density(x)`` read from ``density_volume()``'s result."""
+        grid = self.normalise(x).view(1, -1, 1, 1, 3)  # grid_sample's (x, y, z) = (W, H, D)
+        summed = F.grid_sample(volume, grid, mode="bilinear", align_corners=True).view(-1)
+        return self.density_from_features(summed)
+
+    @torch.no_grad()
     def vertex_density(self) -> Tensor:
         """Density at every grid vertex ``[N, N, N]`` (x, y, z): within each grid cell the
         density's pre-activation is trilinear, so these bound the density in the cell."""

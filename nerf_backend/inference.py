@@ -14,7 +14,7 @@ from .dataset import load_scene_bounds, load_split
 from .files import write_json
 from .models import build_model
 from .ray_bounds import RayBounds, choose_ray_bounds
-from .render_views import DEFAULT_CHUNK, render_poses
+from .render_views import render_poses
 from .run_folder import RunFolder
 
 RENDERS_RECORD = "renders.json"
@@ -38,7 +38,7 @@ def view_stem(image_path: Path) -> str:
     return image_path.stem
 
 
-def render_split(run: RunFolder, split: str, device: torch.device, chunk: int = DEFAULT_CHUNK,
+def render_split(run: RunFolder, split: str, device: torch.device, chunk: int | None = None,
                  progress: bool = True) -> Path:
     """Render every view of ``split`` with the run's latest checkpoint; returns the folder.
 

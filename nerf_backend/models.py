@@ -20,7 +20,7 @@ from .grid_field import GridField
 from .occupancy import OccupancyGrid
 from .ray_rendering import RenderOutput, render_rays
 from .samplers import interval_midpoints
-from .volume_rendering import composite_rgb, expected_depth, render_weights
+from .volume_rendering import accumulate, composite_rgb, expected_depth, render_weights
 
 
 class NerfModel(nn.Module):
@@ -49,10 +49,23 @@ class NerfModel(nn.Module):
         return [coarse] if fine is None else [coarse, fine]
 
 
+# Rays per inference pass of the grid model: it holds one segment of samples per ray, so
+# large chunks stay small in memory and amortise per-call overhead. Measured on 2 CPU cores,
+# the fast preset rendering an 800×800 view: 1024 rays a chunk ~11-13 s, 4096 ~10 s,
+# 16384 ~9.4 s.
+GRID_RENDER_CHUNK = 8192
+
+
 class GridModel(nn.Module):
     """The fast model: a factorised-grid field marched in fixed steps through the scene's
     box, skipping cells the occupancy grid knows are empty, and computing colour only for
     samples that carry weight."""
+
+    # Inference marches this many steps at a time, and drops rays whose transmittance has
+    # fallen below OPAQUE_TRANSMITTANCE: what they would still add is under 1e-4 of a pixel.
+    INFERENCE_SEGMENT = 32
+    OPAQUE_TRANSMITTANCE = 1e-4
+    render_chunk = GRID_RENDER_CHUNK
 
     def __init__(self, config: TrainConfig, box: SceneBounds) -> None:
         super().__init__()
@@ -104,36 +117,100 @@ class GridModel(nn.Module):
         if resolution != self.field.resolution:
             self.resize(resolution)
 
+    def _march_edges(self, t_near: Tensor, t_far: Tensor, offset: Tensor, first: int, count: int) -> Tensor:
+        """Edges ``[R, count+1]`` of march steps ``first .. first+count`` of each ray: fixed
+        steps from ``t_near`` (the first shortened by ``offset`` of a step), cut at ``t_far``."""
+        steps = torch.arange(first, first + count + 1, device=t_near.device, dtype=t_near.dtype)
+        t_edges = t_near[:, None] + (steps[None, :] - 1.0 + offset).clamp_min(0.0) * self.step
+        return torch.minimum(t_edges, t_far[:, None])
+
+    # Both helpers gather samples by flat index (one nonzero() per mask), which on the CPU
+    # costs far less than boolean-mask indexing repeated per tensor.
+    def _occupied_density(self, positions: Tensor, deltas: Tensor, volume: Tensor | None) -> Tensor:
+        """Density ``[R, S]`` at sample ``positions [R, S, 3]``; 0 on empty steps and cells.
+        ``volume``: the field's ``density_volume()`` (inference) or None (the grids)."""
+        flat_positions = positions.view(-1, 3)
+        index = (deltas > 0).view(-1).nonzero().squeeze(1)
+        index = index[self.occupancy.query(flat_positions.index_select(0, index))]
+        inside = flat_positions.index_select(0, index)
+        values = self.field.density(inside) if volume is None else self.field.density_from_volume(volume, inside)
+        return torch.zeros_like(deltas).view(-1).index_put((index,), values).view(deltas.shape)
+
+    def _colour_where_visible(self, positions: Tensor, directions: Tensor, weights: Tensor) -> Tensor:
+        """Colour ``[R, S, 3]``, evaluated only for samples whose weight shows."""
+        samples = weights.shape[1]
+        index = (weights.detach() > self.config.colour_weight_threshold).view(-1).nonzero().squeeze(1)
+        colour = self.field.colour(positions.view(-1, 3).index_select(0, index),
+                                   directions.index_select(0, index // samples))
+        return positions.new_zeros((positions.shape[0] * samples, 3)).index_put((index,), colour).view(positions.shape)
+
     def forward(
         self, origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor,
         background: Tensor | float = 1.0, generator: torch.Generator | None = None,
     ) -> list[RenderOutput]:
-        rays, samples = origins.shape[0], self.samples_per_ray
-        steps = torch.arange(samples + 1, device=origins.device, dtype=origins.dtype)
+        if not self.training and not torch.is_grad_enabled():
+            return [self._render_stopping_early(origins, directions, t_near, t_far, background)]
+        rays = origins.shape[0]
         if self.training:  # one random offset per ray: unbiased, and every step still covered
             offset = torch.rand((rays, 1), generator=generator, device=origins.device, dtype=origins.dtype)
         else:
             offset = torch.zeros((rays, 1), device=origins.device, dtype=origins.dtype)
-        t_edges = t_near[:, None] + (steps[None, :] - 1.0 + offset).clamp_min(0.0) * self.step
-        t_edges = torch.minimum(t_edges, t_far[:, None])
+        t_edges = self._march_edges(t_near, t_far, offset, 0, self.samples_per_ray)
         deltas = t_edges[:, 1:] - t_edges[:, :-1]
         t_mid = interval_midpoints(t_edges)
         positions = origins[:, None, :] + directions[:, None, :] * t_mid[..., None]
-        valid = deltas > 0
-        valid[valid.clone()] = self.occupancy.query(positions[valid])
-        density = torch.zeros((rays, samples), device=origins.device, dtype=origins.dtype)
-        density = density.index_put((valid,), self.field.density(positions[valid]))
-        weights, _ = render_weights(density, deltas)
-        # Colour only where it shows: samples with visible weight.
-        visible = weights.detach() > self.config.colour_weight_threshold
-        rgb = torch.zeros((rays, samples, 3), device=origins.device, dtype=origins.dtype)
-        view_dirs = directions[:, None, :].expand(rays, samples, 3)
-        rgb = rgb.index_put((visible,), self.field.colour(positions[visible], view_dirs[visible]))
-        output = RenderOutput(
+        weights, _ = render_weights(self._occupied_density(positions, deltas, None), deltas)
+        rgb = self._colour_where_visible(positions, directions, weights)
+        return [RenderOutput(
             rgb=composite_rgb(weights, rgb, background), depth=expected_depth(weights, t_mid),
             opacity=weights.sum(dim=-1), weights=weights, t_edges=t_edges,
-        )
-        return [output]
+        )]
+
+    def _density_volume(self) -> Tensor:
+        """The field's density volume, rebuilt only when the density grid has changed."""
+        parameters = list(self.field.density_grid.parameters())
+        key = tuple((id(p), p._version) for p in parameters)
+        if getattr(self, "_volume_key", None) != key:
+            self._volume = self.field.density_volume()
+            self._volume_key = key
+        return self._volume
+
+    @torch.no_grad()
+    def _render_stopping_early(
+        self, origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, background: Tensor | float,
+    ) -> RenderOutput:
+        """The same march without gradients, in segments of steps; a ray stops once it is
+        opaque (transmittance below ``OPAQUE_TRANSMITTANCE``), so surfaces hide what lies
+        behind them from the cost as well as from the image. Density comes from the dense
+        density volume (equal to the grids' value, one lookup instead of six)."""
+        volume = self._density_volume()
+        rays = origins.shape[0]
+        transmittance = origins.new_ones(rays)
+        rgb = origins.new_zeros((rays, 3))
+        depth = origins.new_zeros(rays)
+        active = torch.arange(rays, device=origins.device)
+        for first in range(0, self.samples_per_ray, self.INFERENCE_SEGMENT):
+            count = min(self.INFERENCE_SEGMENT, self.samples_per_ray - first)
+            ray_origins, ray_directions, ray_far = origins[active], directions[active], t_far[active]
+            t_edges = self._march_edges(t_near[active], ray_far, origins.new_zeros((len(active), 1)), first, count)
+            deltas = t_edges[:, 1:] - t_edges[:, :-1]
+            t_mid = interval_midpoints(t_edges)
+            positions = ray_origins[:, None, :] + ray_directions[:, None, :] * t_mid[..., None]
+            density = self._occupied_density(positions, deltas, volume)
+            segment_weights, segment_transmittance = render_weights(density, deltas)
+            entering = transmittance[active]
+            weights = segment_weights * entering[:, None]
+            colour = self._colour_where_visible(positions, ray_directions, weights)
+            rgb.index_add_(0, active, accumulate(weights, colour))
+            depth.index_add_(0, active, expected_depth(weights, t_mid))
+            leaving = entering * segment_transmittance[:, -1] * torch.exp(-density[:, -1] * deltas[:, -1])
+            transmittance[active] = leaving
+            active = active[(leaving > self.OPAQUE_TRANSMITTANCE) & (t_edges[:, -1] < ray_far)]
+            if active.numel() == 0:
+                break
+        opacity = 1.0 - transmittance
+        return RenderOutput(rgb=rgb + transmittance[:, None] * background, depth=depth, opacity=opacity,
+                            weights=None, t_edges=None)
 
 
 def build_model(config: TrainConfig, box: SceneBounds | None) -> nn.Module:

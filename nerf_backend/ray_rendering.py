@@ -25,8 +25,9 @@ class RenderOutput:
     rgb: Tensor  # [R, 3], composited over the background
     depth: Tensor  # [R], expected distance along the ray (0 where empty)
     opacity: Tensor  # [R], 1 - final transmittance
-    weights: Tensor  # [R, S]
-    t_edges: Tensor  # [R, S+1]
+    # Per-sample detail for training; None from renders that stop rays early (inference).
+    weights: Tensor | None  # [R, S]
+    t_edges: Tensor | None  # [R, S+1]
 
 
 def render_pass(

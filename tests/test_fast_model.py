@@ -146,3 +146,52 @@ def test_coarse_to_fine_schedule():
     assert model.before_step(grid.upsample_iterations[0]) is True
     assert model.field.resolution == resolutions[1]
     assert model.occupancy.cells == resolutions[1] - 1
+
+
+def _solid_grid_model() -> GridModel:
+    """A fast model whose random grids hold dense blobs and empty space, occupancy updated."""
+    torch.manual_seed(3)
+    model = GridModel(PRESETS["fast"], BOX)
+    resolution = model.field.resolution
+    model.resize(5)  # random values on a coarse grid, interpolated up: smooth blobs
+    with torch.no_grad():
+        for parameter in model.field.density_grid.parameters():
+            parameter.normal_(0.0, 1.4)
+    model.resize(resolution)
+    model.update_occupancy()
+    assert 0.05 < model.occupancy.occupied_fraction < 0.95  # both kinds of space present
+    return model.eval()
+
+
+def test_density_volume_reads_the_same_density_as_the_grids():
+    model = _solid_grid_model()
+    points = torch.rand(5000, 3) * (torch.tensor(BOX.box_max) - torch.tensor(BOX.box_min)) + torch.tensor(BOX.box_min)
+    direct = model.field.density(points)
+    from_volume = model.field.density_from_volume(model.field.density_volume(), points)
+    # Trilinear of the vertex products is exactly the factorised value; float32 rounding only.
+    assert torch.allclose(from_volume, direct, rtol=1e-4, atol=1e-4)
+
+
+def test_inference_render_matches_the_training_march():
+    """Without gradients the model marches in segments, stops opaque rays and reads density
+    from the dense volume; the image must equal the full march to the early-stop bound."""
+    model = _solid_grid_model()
+    from nerf_backend.cameras import ray_box_intersection
+
+    torch.manual_seed(4)
+    origins = torch.nn.functional.normalize(torch.randn(3000, 3), dim=-1) * 4.0
+    targets = torch.rand(3000, 3) * 2.0 - 1.0
+    directions = torch.nn.functional.normalize(targets - origins, dim=-1)
+    near, far, _ = ray_box_intersection(origins, directions, torch.tensor(BOX.box_min), torch.tensor(BOX.box_max))
+    with torch.enable_grad():
+        full = model(origins, directions, near, far)[0]
+    with torch.no_grad():
+        early = model(origins, directions, near, far)[0]
+    assert early.weights is None and full.weights is not None  # the two paths really differ
+    opaque = full.opacity > 0.9999
+    assert 0 < opaque.sum() < len(opaque)  # some rays stop early, some pass through
+    # A stopped ray loses at most its remaining transmittance (1e-4) of colour and opacity.
+    tolerance = GridModel.OPAQUE_TRANSMITTANCE + 1e-5
+    assert (early.rgb - full.rgb).abs().max() < tolerance
+    assert (early.opacity - full.opacity).abs().max() < tolerance
+    assert (early.depth - full.depth).abs().max() < tolerance * float(far.max()) + 1e-4
