@@ -53,9 +53,10 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--presets", default=None,
                        help="comma-separated presets or variants NAME=PRESET+KEY=VALUE+... "
                             "(default: preview,fast,auto,paper)")
-    bench.add_argument("--ablations", action="store_true",
-                       help="add the NeRF paper's ablations of the paper preset (no PE, no view dependence, "
-                            "no hierarchical sampling, 50 and 25 views)")
+    bench.add_argument("--ablations", nargs="?", const="paper", default=None, metavar="PRESET",
+                       help="add the NeRF paper's ablations of a NeRF preset (default: paper): no PE, no view "
+                            "dependence, no hierarchical sampling, 50 and 25 views, L = 5 and 15; and check their "
+                            "order against the paper's")
     bench.add_argument("--budget-seconds", type=_positive_float, default=None, help="training seconds per variant")
     bench.add_argument("--iters", type=_positive_int, default=None, help="or: iterations per variant")
     bench.add_argument("--points", type=_positive_int, default=6, help="evaluations along each curve")
@@ -64,6 +65,16 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
     bench.add_argument("--out", type=Path, required=True)
     bench.add_argument("--overwrite", action="store_true")
+
+    step = sub.add_parser("bench-step", help="seconds per training iteration of a NeRF preset against a "
+                                             "plain PyTorch implementation of the same maths")
+    step.add_argument("dataset", type=Path)
+    step.add_argument("--preset", default="paper")
+    step.add_argument("--steps", type=_positive_int, default=3, help="timed iterations on each side")
+    step.add_argument("--rays", type=_positive_int, default=None, help="rays per batch (default: the preset's)")
+    step.add_argument("--seed", type=int, default=0)
+    step.add_argument("--out", type=Path, required=True)
+    step.add_argument("--overwrite", action="store_true")
 
     for name, help_text in (("render", "render a split's views with a trained run"),
                             ("eval", "render if needed, then score a split against its ground truth")):
@@ -96,15 +107,27 @@ def _run(args: argparse.Namespace) -> int:
         return 0
 
     if args.command == "bench":
-        from .bench import DEFAULT_PRESETS, PAPER_ABLATIONS, Variant, run_bench
+        from .bench import DEFAULT_PRESETS, Variant, ablation_variants, run_bench
 
         names = (args.presets or ("" if args.ablations else DEFAULT_PRESETS)).split(",")
-        names = [n for n in names if n] + (list(PAPER_ABLATIONS) if args.ablations else [])
+        names = [n for n in names if n] + (ablation_variants(args.ablations) if args.ablations else [])
         report = run_bench(args.dataset, [Variant.parse(n) for n in names], args.out, args.budget_seconds,
                            args.iters, points=args.points, curve_views=args.curve_views, seed=args.seed,
                            device=args.device, overwrite=args.overwrite)
         print((args.out / "bench.md").read_text(), end="")
         print(f"written {args.out / 'bench.json'}, {args.out / 'bench.md'}, {args.out / 'bench.png'}")
+        return 0
+
+    if args.command == "bench-step":
+        from .bench import step_cost
+
+        report = step_cost(args.dataset, args.preset, args.steps, args.out, seed=args.seed, rays=args.rays,
+                           overwrite=args.overwrite)
+        per = report["seconds_per_iteration"]
+        print(f"{args.preset}, {report['rays_per_batch']} rays: this project {per['project']:.2f} s/iteration, "
+              f"plain PyTorch {per['plain']:.2f} s/iteration (ratio {report['ratio_project_to_plain']:.2f}; "
+              f"{report['parameters']['project']:,} vs {report['parameters']['plain']:,} parameters); "
+              f"written {args.out / 'step_cost.json'}")
         return 0
 
     from .inference import render_split, renders_are_current

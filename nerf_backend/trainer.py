@@ -42,6 +42,7 @@ class TrainOptions:
     resume: bool = False
     overwrite: bool = False
     progress: bool = True
+    validate: bool = True  # render validation views (False: timing runs that only train)
 
 
 @dataclass
@@ -152,7 +153,7 @@ def train(options: TrainOptions) -> TrainSummary:
     dataset = Path(options.dataset).resolve()
     # Read the whole dataset before touching the run folder: bad input leaves nothing behind.
     train_split = load_split(dataset, "train")
-    val_split = _load_val(dataset)
+    val_split = _load_val(dataset) if options.validate else None
     scene_bounds = load_scene_bounds(dataset)
     run = RunFolder(options.run)
     run.acquire_lock()

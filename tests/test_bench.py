@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import json
 
+import torch
 from PIL import Image
 
 from conftest import run_python
-from nerf_backend.bench import time_to_reach
+from nerf_backend.bench import Variant, ablation_order, ablation_variants, time_to_reach
+from nerf_backend.config import PRESETS
+from nerf_backend.fields import NerfField
+from nerf_backend.plain_nerf import PlainMLP, fourier_features
 
 
 def test_short_bench_writes_json_table_and_plot(tiny_demo_dataset, tmp_path):
@@ -42,3 +46,54 @@ def test_time_to_reach_interpolates_between_points():
     assert time_to_reach(curve, 20.0) == 15.0
     assert time_to_reach(curve, 30.0) == 20.0 + 20.0 * 8 / 9
     assert time_to_reach(curve, 32.0) is None
+
+
+def test_ablation_variants_and_their_order_against_the_paper():
+    specs = ablation_variants("preview")
+    variants = [Variant.parse(spec) for spec in specs]
+    assert variants[0] == Variant("preview_full", "preview", ())
+    by_name = {v.name: v for v in variants}
+    assert by_name["preview_no_pe"].overrides == ("field.position_frequencies=0", "field.direction_frequencies=0")
+    assert by_name["preview_25_views"].overrides == ("max_train_views=25",)
+    psnr = {"full": 30.0, "no_pe": 28.0, "no_view_dependence": 31.0, "50_views": 29.0, "25_views": 27.0}
+    results = [{"name": f"preview_{k}", "final": {"psnr": v}} for k, v in psnr.items()]
+    checks = {c["claim"]: c["holds"] for c in ablation_order(results)}
+    assert checks == {
+        "preview_full > preview_no_pe": True,
+        "preview_full > preview_no_view_dependence": False,  # 30 < 31: reported, not hidden
+        "preview_full > preview_50_views": True,
+        "preview_50_views > preview_25_views": True,
+    }
+
+
+def test_plain_yardstick_computes_the_same_field_as_the_project():
+    """bench-step compares costs of the same maths: with the same weights, the plain MLP and
+    the project's field give the same density and colour."""
+    config = PRESETS["paper"]
+    ours, plain = NerfField(config.field), PlainMLP(config)
+    assert sum(p.numel() for p in plain.parameters()) == sum(p.numel() for p in ours.parameters()) == 595_844
+    pairs = list(zip(ours.trunk, plain.layers)) + [(ours.density_head, plain.sigma), (ours.feature, plain.feature),
+                                                   (ours.colour_hidden, plain.view), (ours.colour_head, plain.rgb)]
+    with torch.no_grad():
+        for source, target in pairs:
+            target.weight.copy_(source.weight)
+            target.bias.copy_(source.bias)
+    torch.manual_seed(0)
+    x, d = torch.rand(500, 3) * 3 - 1.5, torch.nn.functional.normalize(torch.randn(500, 3), dim=-1)
+    sigma, rgb = ours(x, d)
+    plain_sigma, plain_rgb = plain(fourier_features(x, 10), fourier_features(d, 4))
+    assert torch.allclose(plain_sigma, sigma, atol=1e-5) and torch.allclose(plain_rgb, rgb, atol=1e-5)
+    assert sigma.max() > 0  # not a trivially dead field
+
+
+def test_bench_step_times_both_sides(tiny_demo_dataset, tmp_path):
+    out = tmp_path / "step"
+    result = run_python("-m", "nerf_backend", "bench-step", str(tiny_demo_dataset), "--preset", "preview",
+                        "--rays", "64", "--steps", "2", "--out", str(out))
+    report = json.loads((out / "step_cost.json").read_text())
+    seconds = report["seconds_per_iteration"]
+    assert 0 < seconds["project"] < 30 and 0 < seconds["plain"] < 30
+    assert report["ratio_project_to_plain"] == seconds["project"] / seconds["plain"]
+    assert report["parameters"]["project"] == report["parameters"]["plain"]
+    assert report["rays_per_batch"] == 64 and report["steps"] == 2
+    assert "plain PyTorch" in result.stdout
