@@ -15,6 +15,9 @@ $(STAMP): requirements-dev.txt pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/pip install --upgrade --quiet pip
 	$(VENV)/bin/pip install --quiet -r requirements-dev.txt -e .
+	# lpips for its shipped LPIPS v0.1 linear weights only, without dependencies: it would pull
+	# torchvision, whose PyPI build does not import beside the CPU torch pinned here.
+	$(VENV)/bin/pip install --quiet --no-deps lpips==0.1.4
 	touch $(STAMP)
 
 demo: $(STAMP)

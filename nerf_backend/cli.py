@@ -76,16 +76,38 @@ def build_parser() -> argparse.ArgumentParser:
     step.add_argument("--out", type=Path, required=True)
     step.add_argument("--overwrite", action="store_true")
 
-    for name, help_text in (("render", "render a split's views with a trained run"),
-                            ("eval", "render if needed, then score a split against its ground truth")):
-        cmd = sub.add_parser(name, help=help_text)
-        cmd.add_argument("run", type=Path)
-        cmd.add_argument("--split", default="test")
-        cmd.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
-        cmd.add_argument("--chunk", type=_positive_int, default=None,
-                         help=f"rays per forward pass; bounds memory (default: the model's, {DEFAULT_CHUNK} "
-                              f"for NeRF MLPs, {GRID_RENDER_CHUNK} for the grid model)")
-        cmd.add_argument("--no-progress", action="store_true")
+    render = sub.add_parser("render", help="render a split's views with a trained run")
+    render.add_argument("run", type=Path)
+    render.add_argument("--split", default="test")
+    render.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
+    render.add_argument("--chunk", type=_positive_int, default=None,
+                        help=f"rays per forward pass; bounds memory (default: the model's, {DEFAULT_CHUNK} "
+                             f"for NeRF MLPs, {GRID_RENDER_CHUNK} for the grid model)")
+    render.add_argument("--no-progress", action="store_true")
+
+    evaluate = sub.add_parser("eval", help="score renders against the dataset's ground truth: a run's (rendered "
+                                           "first if needed) or any tool's (--dataset D --renders DIR)")
+    evaluate.add_argument("run", type=Path, nargs="?", help="a run folder (or give --dataset and --renders)")
+    evaluate.add_argument("--dataset", type=Path, default=None, help="with --renders: the dataset they render")
+    evaluate.add_argument("--renders", type=Path, default=None,
+                          help="a folder of renders from any tool: STEM.png for each view of the split")
+    evaluate.add_argument("--out", type=Path, default=None,
+                          help="with --renders: where metrics.json goes (default: the renders folder)")
+    evaluate.add_argument("--split", default="test")
+    evaluate.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
+    evaluate.add_argument("--chunk", type=_positive_int, default=None, help="rays per forward pass when rendering")
+    evaluate.add_argument("--no-progress", action="store_true")
+    evaluate.add_argument("--lpips-weights", type=Path, default=None,
+                          help="torchvision's AlexNet weights (alexnet-owt-7be5be79.pth) for LPIPS "
+                               "(default: torch hub's cache)")
+    evaluate.add_argument("--lpips-linear", type=Path, default=None,
+                          help="LPIPS v0.1 linear-layer weights (default: the ones in the lpips package)")
+
+    report = sub.add_parser("report", help="write an HTML page comparing renders with Cycles ground truth")
+    report.add_argument("results", type=Path, nargs="+",
+                        help="run folders, or renders folders scored by eval --dataset D --renders DIR")
+    report.add_argument("--out", type=Path, default=None, help="default: FIRST/report")
+    report.add_argument("--split", default="test")
     return parser
 
 
@@ -130,26 +152,40 @@ def _run(args: argparse.Namespace) -> int:
               f"written {args.out / 'step_cost.json'}")
         return 0
 
-    from .inference import render_split, renders_are_current
+    if args.command == "report":
+        from .report import write_report
 
-    run = RunFolder(args.run)
+        page = write_report(args.results, args.out, split=args.split)
+        print(f"report: {page}")
+        return 0
+
+    from .evaluate import evaluate_renders, evaluate_run
+
     device = resolve_device(args.device)
     if args.command == "render":
-        out = render_split(run, args.split, device, chunk=args.chunk, progress=not args.no_progress)
+        from .inference import render_split
+
+        out = render_split(RunFolder(args.run), args.split, device, chunk=args.chunk, progress=not args.no_progress)
         print(f"rendered {args.split} views into {out}")
         return 0
 
-    from .dataset import load_split
-    from .evaluate import score_renders
-    from .files import write_json
-
-    if not renders_are_current(run, args.split):
-        render_split(run, args.split, device, chunk=args.chunk, progress=not args.no_progress)
-    stored = run.read_config()
-    metrics = score_renders(load_split(stored["dataset"], args.split), run.renders_dir(args.split))
-    write_json(run.path / "metrics.json", metrics)
-    print(f"{args.split}: mean PSNR {metrics['psnr']:.2f} dB, mean SSIM {metrics['ssim']:.4f} "
-          f"over {metrics['views']} views; written {run.path / 'metrics.json'}")
+    if (args.run is None) == (args.renders is None and args.dataset is None):
+        raise NerfError("eval: give a run folder, or --dataset and --renders (not both)")
+    if args.run is not None:
+        metrics = evaluate_run(args.run, args.split, device, args.lpips_weights, args.lpips_linear,
+                               chunk=args.chunk, progress=not args.no_progress)
+        written = args.run / "metrics.json"
+    else:
+        if args.dataset is None or args.renders is None:
+            raise NerfError("eval: --dataset and --renders go together")
+        metrics = evaluate_renders(args.dataset, args.renders, args.split, device, args.out,
+                                   args.lpips_weights, args.lpips_linear)
+        written = (args.out or args.renders) / "metrics.json"
+    lpips = (f"LPIPS {metrics['lpips']:.4f}" if metrics["lpips"] is not None
+             else f"LPIPS unavailable ({metrics['lpips_unavailable']})")
+    depth = f", depth MAE {metrics['depth_mae']:.4f}" if metrics["depth_mae"] is not None else ""
+    print(f"{args.split}: mean PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {lpips}{depth} "
+          f"over {metrics['views']} views; written {written}")
     return 0
 
 

@@ -9,6 +9,7 @@ and optionally ``scene_profile.json`` with the scene's bounds. Every problem rai
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass
@@ -32,13 +33,19 @@ class DatasetSplit:
     poses: Tensor  # [N, 4, 4] float32 camera-to-world
     rgba: Tensor  # [N, H, W, 4] uint8, as on disk
     image_paths: list[Path]
+    # Ground-truth depth EXR of each view (datasets_gen's ``depth_file_path``), None where absent.
+    depth_paths: list[Path | None] = dataclasses.field(default_factory=list)
 
     def __len__(self) -> int:
         return self.poses.shape[0]
 
     def subset(self, count: int) -> "DatasetSplit":
         """The first ``count`` views."""
-        return DatasetSplit(self.name, self.intrinsics, self.poses[:count], self.rgba[:count], self.image_paths[:count])
+        return DatasetSplit(self.name, self.intrinsics, self.poses[:count], self.rgba[:count], self.image_paths[:count],
+                            self.depth_paths[:count])
+
+    def depth_path(self, index: int) -> Path | None:
+        return self.depth_paths[index] if index < len(self.depth_paths) else None
 
     def rgb_on_white(self, index: int | slice | Tensor = slice(None)) -> Tensor:
         """Float RGB in [0, 1] composited over white, as the reference loaders do."""
@@ -105,17 +112,28 @@ def _pose(frame: dict, index: int, path: Path) -> np.ndarray:
     return matrix
 
 
+def _inside(dataset_dir: Path, relative: str, key: str, index: int, path: Path) -> Path:
+    resolved = (dataset_dir / relative).resolve()
+    if not resolved.is_relative_to(dataset_dir.resolve()):
+        raise DatasetError(f"{path}: frame {index} '{key}' {relative!r} points outside the dataset folder")
+    return resolved
+
+
 def _image_path(dataset_dir: Path, frame: dict, index: int, path: Path) -> Path:
     file_path = frame.get("file_path")
     if not isinstance(file_path, str) or not file_path:
         raise DatasetError(f"{path}: frame {index} has no 'file_path'")
-    candidate = (dataset_dir / file_path)
-    if candidate.suffix.lower() != ".png":
-        candidate = candidate.with_name(candidate.name + ".png")
-    resolved = candidate.resolve()
-    if not resolved.is_relative_to(dataset_dir.resolve()):
-        raise DatasetError(f"{path}: frame {index} 'file_path' {file_path!r} points outside the dataset folder")
-    return resolved
+    relative = file_path if file_path.lower().endswith(".png") else file_path + ".png"
+    return _inside(dataset_dir, relative, "file_path", index, path)
+
+
+def _depth_path(dataset_dir: Path, frame: dict, index: int, path: Path) -> Path | None:
+    depth_path = frame.get("depth_file_path")
+    if depth_path is None:
+        return None
+    if not isinstance(depth_path, str) or not depth_path:
+        raise DatasetError(f"{path}: frame {index} 'depth_file_path' must be a relative path")
+    return _inside(dataset_dir, depth_path, "depth_file_path", index, path)
 
 
 def _read_rgba(path: Path) -> np.ndarray:
@@ -167,7 +185,7 @@ def load_split(dataset_dir: Path | str, split: str) -> DatasetSplit:
         raise DatasetError(f"{json_path}: 'frames' is missing or empty")
     if "camera_angle_x" not in data and "fl_x" not in data:
         raise DatasetError(f"{json_path}: 'camera_angle_x' is missing")
-    poses, images, paths = [], [], []
+    poses, images, paths, depth_paths = [], [], [], []
     for index, frame in enumerate(frames):
         if not isinstance(frame, dict):
             raise DatasetError(f"{json_path}: frame {index} is not an object")
@@ -181,6 +199,7 @@ def load_split(dataset_dir: Path | str, split: str) -> DatasetSplit:
             )
         images.append(pixels)
         paths.append(image_path)
+        depth_paths.append(_depth_path(dataset_dir, frame, index, json_path))
     height, width = images[0].shape[:2]
     return DatasetSplit(
         name=split,
@@ -188,6 +207,7 @@ def load_split(dataset_dir: Path | str, split: str) -> DatasetSplit:
         poses=torch.from_numpy(np.stack(poses)).float(),
         rgba=torch.from_numpy(np.stack(images)),
         image_paths=paths,
+        depth_paths=depth_paths,
     )
 
 

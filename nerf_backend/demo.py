@@ -1,6 +1,7 @@
 """``python -m nerf_backend.demo`` (what ``make demo`` runs): the product end to end on the
 built-in demo scene — Blender renders a dataset, a NeRF trains on it, renders the test
-views and is scored against Cycles. Each stage's wall time is printed at the end.
+views, is scored against Cycles, and the comparison report is written. Each stage's wall
+time is printed at the end.
 
 Re-running reuses what is done: a complete dataset is kept, a finished run is resumed
 (a no-op once its budget is spent), stale renders are redone. The dataset is rendered by
@@ -64,14 +65,18 @@ def main(argv: list[str] | None = None) -> int:
     train += ["--resume"] if (run / "config.json").exists() else ["--preset", args.preset]
     _stage("train", train, timings)
     _stage("render + eval", [python, "-m", "nerf_backend", "eval", str(run), "--split", "test"], timings)
+    _stage("report", [python, "-m", "nerf_backend", "report", str(run)], timings)
 
     metrics = json.loads((run / "metrics.json").read_text())
     print("\n== demo done")
     for name, seconds in timings.items():
         print(f"   {name:<14} {seconds:7.1f} s")
     print(f"   dataset: {dataset}\n   run:     {run}\n   renders: {run / 'renders' / 'test'}")
-    print(f"   mean test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f} "
+    lpips = (f"LPIPS {metrics['lpips']:.4f}" if metrics["lpips"] is not None
+             else "LPIPS unavailable (no AlexNet weights here; see the report)")
+    print(f"   mean test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {lpips} "
           f"over {metrics['views']} views ({run / 'metrics.json'})")
+    print(f"   report:  {(run / 'report' / 'index.html').resolve()}")
     return 0
 
 

@@ -1,7 +1,16 @@
-"""Scoring renders against a dataset's ground truth: PSNR and SSIM per view and mean.
+"""Scoring renders against a dataset's ground truth: PSNR, SSIM, LPIPS and depth error, per
+view and mean.
 
-Both sides are 8-bit images (what is on disk) as float RGB in [0, 1]; the ground truth's
-RGBA is composited over white, as the NeRF renders are."""
+Colour: both sides are 8-bit images (what is on disk) as float RGB in [0, 1]; the ground
+truth's RGBA is composited over white, as the NeRF renders are. Depth: where the dataset has
+ground-truth depth (``depth_file_path``, distance along the ray, alpha in ``A``) and the renders
+folder has ``STEM_depth.exr`` (this project's renders: expected distance ``Z`` and opacity
+``A``), the mean absolute error on pixels that are foreground in both (alpha > 0.5), with the
+rendered distance divided by its opacity so that a half-transparent pixel is not counted
+as nearer than it is.
+
+The renders may come from any tool: ``STEM.png`` per ground-truth view is all that is needed.
+"""
 
 from __future__ import annotations
 
@@ -13,21 +22,53 @@ from PIL import Image
 
 from .dataset import DatasetSplit, composite
 from .errors import NerfError
+from .files import read_exr
+from .lpips_metric import Lpips, lpips_distance
 from .metrics import psnr, ssim
+
+FOREGROUND_ALPHA = 0.5
+DEPTH_MASK = f"pixels whose ground-truth alpha and rendered opacity both exceed {FOREGROUND_ALPHA}"
 
 
 def read_rgb(path: Path) -> np.ndarray:
     """An image on disk as float RGB in [0, 1]; RGBA is composited over white."""
     if not path.is_file():
         raise NerfError(f"{path}: render not found")
-    with Image.open(path) as image:
-        rgba = torch.from_numpy(np.asarray(image.convert("RGBA")).copy())
+    try:
+        with Image.open(path) as image:
+            rgba = torch.from_numpy(np.asarray(image.convert("RGBA")).copy())
+    except OSError as exc:
+        raise NerfError(f"{path}: cannot read image ({exc})") from None
     return composite(rgba).numpy()
 
 
-def score_renders(split: DatasetSplit, renders_dir: Path) -> dict:
-    """Metrics of ``renders_dir/STEM.png`` against each view of ``split``."""
+def depth_error(truth_path: Path, render_path: Path) -> tuple[float | None, int]:
+    """Mean absolute depth error over the pixels foreground in both, and their count."""
+    truth, render = read_exr(truth_path), read_exr(render_path)
+    for path, channels in ((truth_path, truth), (render_path, render)):
+        if not {"Z", "A"} <= set(channels):
+            raise NerfError(f"{path}: depth EXR needs channels Z and A, has {sorted(channels)}")
+    if truth["Z"].shape != render["Z"].shape:
+        raise NerfError(f"{render_path}: depth size {render['Z'].shape} differs from the ground truth's {truth['Z'].shape}")
+    mask = (truth["A"] > FOREGROUND_ALPHA) & (render["A"] > FOREGROUND_ALPHA)
+    count = int(mask.sum())
+    if count == 0:
+        return None, 0
+    rendered_distance = render["Z"][mask] / render["A"][mask]
+    return float(np.abs(rendered_distance - truth["Z"][mask]).mean()), count
+
+
+def _mean(values: list[float | None]) -> float | None:
+    present = [v for v in values if v is not None]
+    return float(np.mean(present)) if present else None
+
+
+def score_renders(split: DatasetSplit, renders_dir: Path, lpips_metric: Lpips | None = None,
+                  lpips_unavailable: str | None = None) -> dict:
+    """Metrics of ``renders_dir/STEM.png`` against each view of ``split``. Without
+    ``lpips_metric``, LPIPS is None everywhere and ``lpips_unavailable`` says why."""
     per_view = []
+    depth_reason = None
     for index, gt_path in enumerate(split.image_paths):
         render_path = renders_dir / f"{gt_path.stem}.png"
         rendered = read_rgb(render_path)
@@ -35,13 +76,84 @@ def score_renders(split: DatasetSplit, renders_dir: Path) -> dict:
         if rendered.shape != reference.shape:
             raise NerfError(f"{render_path}: size {rendered.shape[1]}×{rendered.shape[0]} differs from "
                             f"the ground truth's {reference.shape[1]}×{reference.shape[0]}")
-        per_view.append({"view": gt_path.stem, "psnr": psnr(rendered, reference), "ssim": ssim(rendered, reference)})
+        view = {"view": gt_path.stem, "psnr": psnr(rendered, reference), "ssim": ssim(rendered, reference),
+                "lpips": lpips_distance(lpips_metric, rendered, reference) if lpips_metric is not None else None,
+                "depth_mae": None, "depth_pixels": 0}
+        truth_depth, render_depth = split.depth_path(index), renders_dir / f"{gt_path.stem}_depth.exr"
+        if truth_depth is None:
+            depth_reason = "the dataset has no ground-truth depth (no 'depth_file_path' in its frames)"
+        elif not truth_depth.is_file():
+            depth_reason = f"{truth_depth}: ground-truth depth file not found"
+        elif not render_depth.is_file():
+            depth_reason = f"the renders have no depth ({render_depth.name} not found)"
+        else:
+            view["depth_mae"], view["depth_pixels"] = depth_error(truth_depth, render_depth)
+        per_view.append(view)
+    depth_mean = _mean([v["depth_mae"] for v in per_view])
     return {
         "split": split.name,
+        "views": len(per_view),
         "psnr": float(np.mean([v["psnr"] for v in per_view])),
         "ssim": float(np.mean([v["ssim"] for v in per_view])),
-        "views": len(per_view),
-        "background": "white: ground-truth RGBA composited as rgb·α + (1 − α)",
+        "lpips": _mean([v["lpips"] for v in per_view]),
+        "lpips_net": "AlexNet, LPIPS v0.1",
+        "lpips_unavailable": None if lpips_metric is not None else (lpips_unavailable or "not computed"),
+        "depth_mae": depth_mean,
+        "depth_mask": DEPTH_MASK,
+        "depth_unavailable": None if depth_mean is not None else (depth_reason or "no foreground pixels in common"),
+        "background": "white: ground-truth RGBA composited as rgb·α + (1 − α); renders as written",
         "images": "8-bit PNGs on both sides, as float RGB in [0, 1]",
+        "ssim_settings": "11×11 Gaussian window, σ = 1.5, RGB in [0, 1] (scikit-image's structural_similarity)",
         "per_view": per_view,
     }
+
+
+METRICS_NAME = "metrics.json"
+
+
+def lpips_or_reason(weights: Path | None, linear: Path | None, device: torch.device) -> tuple[Lpips | None, str | None]:
+    """The LPIPS metric, or None and the reason it is unavailable (never a made-up number)."""
+    from .lpips_metric import LpipsUnavailable, load_lpips
+
+    try:
+        return load_lpips(weights, linear, device), None
+    except LpipsUnavailable as exc:
+        return None, str(exc)
+
+
+def evaluate_run(run_path: Path, split: str, device: torch.device, lpips_weights: Path | None = None,
+                 lpips_linear: Path | None = None, chunk: int | None = None, progress: bool = True) -> dict:
+    """Render ``split`` with the run's latest checkpoint if its renders are stale, score
+    them, and write ``RUN/metrics.json``."""
+    from .dataset import load_split
+    from .files import write_json
+    from .inference import render_split, renders_are_current
+    from .run_folder import RunFolder
+
+    run = RunFolder(run_path)
+    stored = run.read_config()
+    if not renders_are_current(run, split):
+        render_split(run, split, device, chunk=chunk, progress=progress)
+    metric, reason = lpips_or_reason(lpips_weights, lpips_linear, device)
+    metrics = score_renders(load_split(stored["dataset"], split), run.renders_dir(split), metric, reason)
+    metrics.update(dataset=stored["dataset"], renders=str(run.renders_dir(split).resolve()))
+    write_json(run.path / METRICS_NAME, metrics)
+    return metrics
+
+
+def evaluate_renders(dataset: Path, renders: Path, split: str, device: torch.device, out_dir: Path | None = None,
+                     lpips_weights: Path | None = None, lpips_linear: Path | None = None) -> dict:
+    """Score a folder of renders made by any tool (``STEM.png`` per view of ``split``) and
+    write ``metrics.json`` into ``out_dir`` (default: the renders folder)."""
+    from .dataset import load_split
+    from .files import write_json
+
+    if not renders.is_dir():
+        raise NerfError(f"{renders}: renders folder not found")
+    metric, reason = lpips_or_reason(lpips_weights, lpips_linear, device)
+    metrics = score_renders(load_split(dataset, split), renders, metric, reason)
+    metrics.update(dataset=str(Path(dataset).resolve()), renders=str(renders.resolve()))
+    out_dir = out_dir or renders
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_json(out_dir / METRICS_NAME, metrics)
+    return metrics

@@ -41,3 +41,15 @@ def shared_scenes() -> Path:
     if not path.is_dir():
         pytest.fail(f"{path} is missing: the project's tests need ../shared/scenes beside the repo")
     return path
+
+
+TRAIN_ITERS = 400
+
+
+@pytest.fixture(scope="session")
+def trained_run(tiny_demo_dataset, tmp_path_factory) -> Path:
+    """The preview preset trained for TRAIN_ITERS iterations on the tiny demo dataset."""
+    run = tmp_path_factory.mktemp("runs") / "preview"
+    run_python("-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "preview", "--out", str(run),
+               "--iters", str(TRAIN_ITERS), "--no-progress")
+    return run

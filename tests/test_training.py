@@ -15,27 +15,18 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import REPO_ROOT, run_python
+from conftest import REPO_ROOT, TRAIN_ITERS, run_python
 from nerf_backend.dataset import load_split
 from nerf_backend.metrics import psnr
 
 # Measured: preview reached 27.1 dB mean test PSNR on the tiny demo dataset after 400
-# iterations (seed 0), where a blank white image scores 15.4 dB. The floor leaves room for
-# run-to-run variation across machines and torch builds.
-TRAIN_ITERS = 400
+# iterations (seed 0, conftest's trained_run), where a blank white image scores 15.4 dB.
+# The floor leaves room for run-to-run variation across machines and torch builds.
 PSNR_FLOOR_DB = 21.0
 
 
 def _events(run: Path) -> list[dict]:
     return [json.loads(line) for line in (run / "events.jsonl").read_text().splitlines()]
-
-
-@pytest.fixture(scope="module")
-def trained_run(tiny_demo_dataset, tmp_path_factory) -> Path:
-    run = tmp_path_factory.mktemp("runs") / "preview"
-    run_python("-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "preview", "--out", str(run),
-               "--iters", str(TRAIN_ITERS), "--no-progress")
-    return run
 
 
 def test_preview_training_clears_the_psnr_floor(trained_run, tiny_demo_dataset):

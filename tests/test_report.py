@@ -1,0 +1,110 @@
+"""Depth error, scoring other tools' renders, and the HTML report loaded in a real headless
+Chromium: nothing broken, nothing fetched from a network, a page that is not blank."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from browser import chromium_binary, load_page
+from conftest import run_python
+from nerf_backend.evaluate import depth_error
+from nerf_backend.files import write_exr
+
+
+def test_depth_error_on_pixels_foreground_in_both(tmp_path):
+    truth_z = np.array([[2.0, 3.0], [4.0, 0.0]], np.float32)
+    truth_a = np.array([[1.0, 1.0], [1.0, 0.0]], np.float32)
+    # Rendered: expected distance Σw·t is scaled by opacity; pixel (1,0) is background in the render.
+    render_z = np.array([[2.1 * 0.8, 2.5], [1.0, 5.0]], np.float32)
+    render_a = np.array([[0.8, 1.0], [0.2, 1.0]], np.float32)
+    write_exr(tmp_path / "truth.exr", {"Z": truth_z, "A": truth_a})
+    write_exr(tmp_path / "render.exr", {"Z": render_z, "A": render_a})
+    error, pixels = depth_error(tmp_path / "truth.exr", tmp_path / "render.exr")
+    assert pixels == 2  # (0,0) and (0,1); (1,0) is background in the render, (1,1) in the truth
+    assert error == pytest.approx((abs(2.1 - 2.0) + abs(2.5 - 3.0)) / 2, abs=1e-6)
+
+
+def test_eval_scores_another_tools_renders(trained_run, tiny_demo_dataset, tmp_path):
+    run_python("-m", "nerf_backend", "eval", str(trained_run), "--no-progress")
+    run_metrics = json.loads((trained_run / "metrics.json").read_text())
+    other = tmp_path / "other_tool"
+    other.mkdir()
+    for png in (trained_run / "renders" / "test").glob("*.png"):
+        shutil.copy(png, other / png.name)  # colour only: another NeRF's output has no depth EXRs
+    result = run_python("-m", "nerf_backend", "eval", "--dataset", str(tiny_demo_dataset), "--renders", str(other))
+    metrics = json.loads((other / "metrics.json").read_text())
+    assert metrics["psnr"] == pytest.approx(run_metrics["psnr"], abs=1e-9)
+    assert metrics["ssim"] == pytest.approx(run_metrics["ssim"], abs=1e-9)
+    assert run_metrics["depth_mae"] is not None and 0 < run_metrics["depth_mae"] < 1.0
+    assert metrics["depth_mae"] is None and "no depth" in metrics["depth_unavailable"]
+    assert "mean PSNR" in result.stdout
+    # A view missing from the folder is named.
+    (other / "r_1.png").unlink()
+    failed = run_python("-m", "nerf_backend", "eval", "--dataset", str(tiny_demo_dataset), "--renders", str(other),
+                        check=False)
+    assert failed.returncode == 2 and "r_1.png: render not found" in failed.stderr
+
+
+@pytest.fixture(scope="module")
+def report_page(trained_run, tiny_demo_dataset, tmp_path_factory):
+    """A report comparing the trained run with a copy of its renders scored as another tool's."""
+    other = tmp_path_factory.mktemp("other") / "renders"
+    other.mkdir()
+    run_python("-m", "nerf_backend", "eval", str(trained_run), "--no-progress")
+    for png in (trained_run / "renders" / "test").glob("*.png"):
+        shutil.copy(png, other / png.name)
+    run_python("-m", "nerf_backend", "eval", "--dataset", str(tiny_demo_dataset), "--renders", str(other))
+    result = run_python("-m", "nerf_backend", "report", str(trained_run), str(other))
+    page = trained_run / "report" / "index.html"
+    assert f"report: {page}" in result.stdout
+    return page
+
+
+def test_report_holds_the_headline_views_and_curves(report_page, trained_run):
+    text = report_page.read_text()
+    metrics = json.loads((trained_run / "metrics.json").read_text())
+    assert f"{metrics['psnr']:.2f} dB" in text and "unavailable" in text and "--lpips-weights" in text
+    for view in metrics["per_view"]:
+        assert f">{view['view']}<" in text
+    assert "Runs compared" in text and "What the run decided" in text
+    assert "http://" not in text and "https://" not in text
+    tables = text.split('<table class="views">')[1:]
+    assert len(tables) == 2  # one per result
+    for table in tables:
+        psnrs = [float(v) for v in re.findall(r'<tr data-psnr="([0-9.]+)"', table.split("</table>")[0])]
+        assert len(psnrs) == len(metrics["per_view"]) and psnrs == sorted(psnrs)  # worst first
+    images = report_page.parent / "images"
+    assert (images / "r0_training.png").is_file() and (images / "error_scale.png").is_file()
+
+
+def test_report_in_headless_chromium(report_page, tmp_path):
+    if chromium_binary() is None:
+        if os.environ.get("NERF_REQUIRE_BROWSER"):
+            pytest.fail("Chromium is required here (NERF_REQUIRE_BROWSER) but not installed")
+        pytest.skip("no Chromium on this machine (Debian: apt-get install chromium)")
+    shot = tmp_path / "report.png"
+    state = load_page(report_page, shot)
+    assert state["total"] > 10 and state["broken"] == []
+    assert int(state["loaded"]) == state["total"]  # the page's own count, after its load event
+    assert state["requests"] and all(url.startswith("file://") for url in state["requests"]), state["requests"]
+    with Image.open(shot) as image:
+        pixels = np.asarray(image.convert("RGB"), dtype=np.float32)
+    assert pixels.shape[0] > 1000 and pixels.shape[1] >= 1200
+    assert pixels.std() > 20  # not a blank page
+    assert (pixels.mean(axis=-1) < 200).mean() > 0.02  # text, pictures and plots, not white
+
+
+def test_report_refuses_to_empty_a_foreign_folder(trained_run, tmp_path):
+    target = tmp_path / "mine"
+    target.mkdir()
+    (target / "notes.txt").write_text("keep me")
+    result = run_python("-m", "nerf_backend", "report", str(trained_run), "--out", str(target), check=False)
+    assert result.returncode == 2 and "not a report written by this tool" in result.stderr
+    assert (target / "notes.txt").read_text() == "keep me"
