@@ -1,8 +1,9 @@
-"""``python -m nerf_backend {train,render,eval}``."""
+"""``python -m nerf_backend {train,render,eval,report,bench,bench-step}``."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -83,6 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--chunk", type=_positive_int, default=None,
                         help=f"rays per forward pass; bounds memory (default: the model's, {DEFAULT_CHUNK} "
                              f"for NeRF MLPs, {GRID_RENDER_CHUNK} for the grid model)")
+    render.add_argument("--scale", type=_positive_float, default=1.0,
+                        help="render at this multiple of the dataset's resolution (into renders/SPLIT_xSCALE)")
     render.add_argument("--no-progress", action="store_true")
 
     evaluate = sub.add_parser("eval", help="score renders against the dataset's ground truth: a run's (rendered "
@@ -165,8 +168,12 @@ def _run(args: argparse.Namespace) -> int:
     if args.command == "render":
         from .inference import render_split
 
-        out = render_split(RunFolder(args.run), args.split, device, chunk=args.chunk, progress=not args.no_progress)
-        print(f"rendered {args.split} views into {out}")
+        out = render_split(RunFolder(args.run), args.split, device, chunk=args.chunk, progress=not args.no_progress,
+                           scale=args.scale)
+        record = json.loads((out / "renders.json").read_text())
+        width, height = record["size"]
+        print(f"rendered {len(record['views'])} {args.split} views at {width}×{height} into {out}: "
+              f"{record['seconds_per_view']:.2f} s per view on {record['device']}")
         return 0
 
     if (args.run is None) == (args.renders is None and args.dataset is None):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -39,22 +40,27 @@ def view_stem(image_path: Path) -> str:
 
 
 def render_split(run: RunFolder, split: str, device: torch.device, chunk: int | None = None,
-                 progress: bool = True) -> Path:
-    """Render every view of ``split`` with the run's latest checkpoint; returns the folder.
+                 progress: bool = True, scale: float = 1.0) -> Path:
+    """Render every view of ``split`` with the run's latest checkpoint; returns the folder
+    (``RUN/renders/SPLIT``, or ``RUN/renders/SPLIT_xSCALE`` at ``scale`` times the dataset's
+    resolution, so the renders that ``eval`` scores keep their size).
 
     The folder's ``renders.json`` records the checkpoint iteration, so stale renders (from
-    before the run trained further) are recognised."""
+    before the run trained further) are recognised, and the seconds each view took."""
     stored = run.read_config()
     dataset_split = load_split(stored["dataset"], split)
     model, ray_bounds, state = load_trained_model(run, device)
-    out_dir = run.renders_dir(split)
+    intrinsics = dataset_split.intrinsics if scale == 1.0 else dataset_split.intrinsics.scaled(scale)
+    out_dir = run.renders_dir(split) if scale == 1.0 else run.path / "renders" / f"{split}_x{scale:g}"
     stems = [view_stem(p) for p in dataset_split.image_paths]
     bar = tqdm(total=len(stems), desc=f"render {split}", unit="view", disable=not progress, file=sys.stderr)
-    render_poses(model, dataset_split.intrinsics, dataset_split.poses, stems, ray_bounds, out_dir,
+    start = time.perf_counter()
+    render_poses(model, intrinsics, dataset_split.poses, stems, ray_bounds, out_dir,
                  chunk=chunk, on_view=lambda i: bar.update(1))
     bar.close()
     write_json(out_dir / RENDERS_RECORD, {
-        "split": split, "iteration": state["iteration"], "views": stems,
+        "split": split, "iteration": state["iteration"], "views": stems, "size": [intrinsics.width, intrinsics.height],
+        "seconds_per_view": (time.perf_counter() - start) / len(stems), "device": str(device),
         "image": "RGB over white, 8-bit PNG", "depth": "STEM_depth.exr: Z = expected ray distance, A = opacity",
     })
     return out_dir
