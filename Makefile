@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # Where `make demo` writes (re-running it reuses what is already there).
 DEMO_DIR ?= out/demo
 
-.PHONY: setup demo test test-slow clean-demo
+.PHONY: setup demo test test-slow extension clean-demo
 
 setup: $(STAMP)
 
@@ -30,6 +30,10 @@ test: $(STAMP)
 # Heavier runs, kept runnable: longer trainings and full-size renders.
 test-slow: $(STAMP)
 	$(PY) -m pytest -m slow
+
+# The installable Blender extension (dist/nerf_from_blender-VERSION.zip).
+extension:
+	$(PYTHON) tools/build_extension.py --out dist
 
 clean-demo:
 	rm -rf $(DEMO_DIR)

@@ -1,25 +1,24 @@
-"""The Blender add-on (View3D › Sidebar › NeRF).
+"""The Blender add-on (View3D › Sidebar › NeRF): generate a dataset, train, watch it learn,
+compare with Cycles.
 
-Blender-facing code only: it never imports torch. It renders datasets with ``datasets_gen``
-and drives the training backend (``nerf_backend``) as a separate process.
-
-This is the package's skeleton: it registers nothing yet. The sidebar panel (generate,
-train with live progress and cancel, load renders, compare with Cycles) is issue #6; until
-then the command lines in the README do each step.
+Blender-facing code (``properties``, ``operators``, ``panel``) only draws and calls; the
+job handling (``jobs``, ``backend_setup``) and the camera maths (``camera_mapping``) are
+plain Python that tests drive without Blender. The add-on never imports torch: training
+runs in the backend's own Python as a separate process.
 """
 
-_CLASSES: tuple = ()
+_MODULES = ("properties", "operators", "panel")
 
 
 def register() -> None:
-    import bpy
+    import importlib
 
-    for cls in _CLASSES:
-        bpy.utils.register_class(cls)
+    for name in _MODULES:
+        importlib.import_module(f".{name}", __package__).register()
 
 
 def unregister() -> None:
-    import bpy
+    import importlib
 
-    for cls in reversed(_CLASSES):
-        bpy.utils.unregister_class(cls)
+    for name in reversed(_MODULES):
+        importlib.import_module(f".{name}", __package__).unregister()

@@ -1,4 +1,4 @@
-"""``python -m nerf_backend {train,render,eval,report,bench,bench-step}``."""
+"""``python -m nerf_backend {train,render,eval,compare,report,bench,bench-step}``."""
 
 from __future__ import annotations
 
@@ -84,6 +84,9 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--chunk", type=_positive_int, default=None,
                         help=f"rays per forward pass; bounds memory (default: the model's, {DEFAULT_CHUNK} "
                              f"for NeRF MLPs, {GRID_RENDER_CHUNK} for the grid model)")
+    render.add_argument("--cameras", type=Path, default=None,
+                        help="render these cameras instead (a transforms JSON with w, h and intrinsics; no images)")
+    render.add_argument("--out", type=Path, default=None, help="with --cameras: the output folder")
     render.add_argument("--scale", type=_positive_float, default=1.0,
                         help="render at this multiple of the dataset's resolution (into renders/SPLIT_xSCALE)")
     render.add_argument("--no-progress", action="store_true")
@@ -100,11 +103,19 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
     evaluate.add_argument("--chunk", type=_positive_int, default=None, help="rays per forward pass when rendering")
     evaluate.add_argument("--no-progress", action="store_true")
-    evaluate.add_argument("--lpips-weights", type=Path, default=None,
-                          help="torchvision's AlexNet weights (alexnet-owt-7be5be79.pth) for LPIPS "
-                               "(default: torch hub's cache)")
-    evaluate.add_argument("--lpips-linear", type=Path, default=None,
-                          help="LPIPS v0.1 linear-layer weights (default: the ones in the lpips package)")
+
+    compare = sub.add_parser("compare", help="score one render against one reference image (PSNR, SSIM, LPIPS) "
+                                            "and write their difference heatmap")
+    compare.add_argument("--reference", type=Path, required=True, help="e.g. the Cycles render")
+    compare.add_argument("--render", type=Path, required=True, help="e.g. the NeRF render of the same camera")
+    compare.add_argument("--out", type=Path, required=True, help="folder for compare.json and difference.png")
+    compare.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
+    for command in (evaluate, compare):
+        command.add_argument("--lpips-weights", type=Path, default=None,
+                             help="torchvision's AlexNet weights (alexnet-owt-7be5be79.pth) for LPIPS "
+                                  "(default: torch hub's cache)")
+        command.add_argument("--lpips-linear", type=Path, default=None,
+                             help="LPIPS v0.1 linear-layer weights (default: the ones in the lpips package)")
 
     report = sub.add_parser("report", help="write an HTML page comparing renders with Cycles ground truth")
     report.add_argument("results", type=Path, nargs="+",
@@ -162,9 +173,23 @@ def _run(args: argparse.Namespace) -> int:
         print(f"report: {page}")
         return 0
 
-    from .evaluate import evaluate_renders, evaluate_run
+    from .evaluate import compare_images, evaluate_renders, evaluate_run
 
     device = resolve_device(args.device)
+    if args.command == "compare":
+        result = compare_images(args.reference, args.render, args.out, device, args.lpips_weights, args.lpips_linear)
+        lpips = f"{result['lpips']:.4f}" if result["lpips"] is not None else "unavailable"
+        print(f"PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}, LPIPS {lpips}; "
+              f"written {args.out / 'compare.json'}, {args.out / 'difference.png'}")
+        return 0
+    if args.command == "render" and args.cameras is not None:
+        from .inference import render_cameras
+
+        if args.out is None:
+            raise NerfError("render --cameras: give --out, the folder for the images")
+        paths = render_cameras(RunFolder(args.run), args.cameras, args.out, device, chunk=args.chunk)
+        print(f"rendered {len(paths)} views into {args.out}")
+        return 0
     if args.command == "render":
         from .inference import render_split
 

@@ -211,6 +211,39 @@ def load_split(dataset_dir: Path | str, split: str) -> DatasetSplit:
     )
 
 
+@dataclass
+class CameraPath:
+    """Cameras without images: what to render (e.g. the Blender add-on's active camera)."""
+
+    intrinsics: Intrinsics
+    poses: Tensor  # [N, 4, 4] camera-to-world
+    stems: list[str]
+
+
+def load_cameras(json_path: Path | str) -> CameraPath:
+    """Cameras from a transforms JSON that needs no images: it must give the image size
+    (``w``, ``h``) and the intrinsics; frames may name their output (``file_path``)."""
+    json_path = Path(json_path)
+    data = _read_json(json_path)
+    frames = data.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise DatasetError(f"{json_path}: 'frames' is missing or empty")
+    try:
+        width, height = int(data["w"]), int(data["h"])
+    except (KeyError, TypeError, ValueError):
+        raise DatasetError(f"{json_path}: a camera file needs the image size as integers 'w' and 'h'") from None
+    if width < 1 or height < 1:
+        raise DatasetError(f"{json_path}: image size {width}×{height} is empty")
+    poses, stems = [], []
+    for index, frame in enumerate(frames):
+        if not isinstance(frame, dict):
+            raise DatasetError(f"{json_path}: frame {index} is not an object")
+        poses.append(_pose(frame, index, json_path))
+        name = frame.get("file_path")
+        stems.append(Path(name).stem if isinstance(name, str) and name else f"view_{index:03d}")
+    return CameraPath(read_intrinsics(data, json_path, width, height), torch.from_numpy(np.stack(poses)).float(), stems)
+
+
 def load_scene_profile(dataset_dir: Path | str) -> dict | None:
     """``scene_profile.json`` as written by datasets_gen, or None for other tools' datasets."""
     path = Path(dataset_dir) / "scene_profile.json"

@@ -157,3 +157,26 @@ def evaluate_renders(dataset: Path, renders: Path, split: str, device: torch.dev
     out_dir.mkdir(parents=True, exist_ok=True)
     write_json(out_dir / METRICS_NAME, metrics)
     return metrics
+
+
+def compare_images(reference: Path, render: Path, out_dir: Path, device: torch.device,
+                   lpips_weights: Path | None = None, lpips_linear: Path | None = None) -> dict:
+    """One render against one reference image (e.g. Cycles and the NeRF from the same
+    camera): PSNR, SSIM, LPIPS (or why not), and ``difference.png``, the error heatmap on the
+    report's scale. Written to ``out_dir/compare.json``."""
+    from .files import write_json, write_png
+    from .report import ERROR_SCALE, error_heatmap
+
+    a, b = read_rgb(render), read_rgb(reference)
+    if a.shape != b.shape:
+        raise NerfError(f"{render}: size {a.shape[1]}×{a.shape[0]} differs from {reference}'s {b.shape[1]}×{b.shape[0]}")
+    metric, reason = lpips_or_reason(lpips_weights, lpips_linear, device)
+    result = {
+        "reference": str(reference), "render": str(render), "psnr": psnr(a, b), "ssim": ssim(a, b),
+        "lpips": lpips_distance(metric, a, b) if metric is not None else None, "lpips_unavailable": reason,
+        "difference": str(out_dir / "difference.png"),
+        "difference_scale": f"mean |render - reference| per pixel, 0 to {ERROR_SCALE} (inferno)",
+    }
+    write_png(out_dir / "difference.png", error_heatmap(a, b))
+    write_json(out_dir / "compare.json", result)
+    return result

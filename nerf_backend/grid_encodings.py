@@ -74,13 +74,17 @@ class VectorMatrixGrid(nn.Module):
         self.resolution = resolution
 
     @torch.no_grad()
-    def dense(self) -> Tensor:
-        """The full volume at the grid's vertices, ``[3·C, N, N, N]`` indexed (x, y, z)."""
-        volumes = []
+    def dense_sum(self) -> Tensor:
+        """The sum of all features at the grid's vertices, ``[N, N, N]`` indexed (x, y, z),
+        without holding every channel's volume: each mode is one matrix product
+        ``[N², C] @ [C, N]``, so a 256³ grid needs 64 MB, not gigabytes."""
+        total = None
         for (plane_axes, line_axis), plane, line in zip(_MODES, self.planes, self.lines):
-            p = plane[0]  # [C, N(axis a), N(axis b)]
-            l = line[0, :, :, 0]  # [C, N(line axis)]
-            full = p[:, :, :, None] * l[:, None, None, :]  # [C, a, b, line]
-            order = list(plane_axes) + [line_axis]  # which world axis each dim of `full` is
-            volumes.append(full.permute(0, *[1 + order.index(axis) for axis in range(3)]))
-        return torch.cat(volumes, dim=0)
+            n = self.resolution
+            p = plane[0].reshape(self.channels, n * n)  # [C, a·b]
+            l = line[0, :, :, 0]  # [C, line]
+            full = (p.T @ l).view(n, n, n)  # [a, b, line]
+            order = list(plane_axes) + [line_axis]
+            full = full.permute(*[order.index(axis) for axis in range(3)])
+            total = full if total is None else total + full
+        return total

@@ -66,6 +66,16 @@ def render_split(run: RunFolder, split: str, device: torch.device, chunk: int | 
     return out_dir
 
 
+def render_cameras(run: RunFolder, cameras_json: Path, out_dir: Path, device: torch.device,
+                   chunk: int | None = None) -> list[Path]:
+    """Render the cameras of a transforms JSON (no images needed) into ``out_dir``."""
+    from .dataset import load_cameras
+
+    cameras = load_cameras(cameras_json)
+    model, ray_bounds, _ = load_trained_model(run, device)
+    return render_poses(model, cameras.intrinsics, cameras.poses, cameras.stems, ray_bounds, out_dir, chunk=chunk)
+
+
 def renders_are_current(run: RunFolder, split: str) -> bool:
     """True when RUN/renders/SPLIT was rendered from the run's latest checkpoint."""
     record = run.renders_dir(split) / RENDERS_RECORD

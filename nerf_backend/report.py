@@ -101,7 +101,7 @@ def _short(value) -> str:
     return value if isinstance(value, str) else json.dumps(rounded(value))
 
 
-def _error_heatmap(rendered: np.ndarray, reference: np.ndarray) -> np.ndarray:
+def error_heatmap(rendered: np.ndarray, reference: np.ndarray) -> np.ndarray:
     import matplotlib
 
     error = np.abs(rendered - reference).mean(axis=-1)
@@ -274,7 +274,7 @@ def _views_table(page: _Page, result: Result, prefix: str, split) -> str:
         rendered = read_rgb(result.renders_dir / f"{view['view']}.png")
         gt = page.image(f"gt_{view['view']}.png", pixels=reference)
         render = page.image(f"{prefix}_{view['view']}.png", source=result.renders_dir / f"{view['view']}.png")
-        error = page.image(f"{prefix}_{view['view']}_error.png", pixels=_error_heatmap(rendered, reference))
+        error = page.image(f"{prefix}_{view['view']}_error.png", pixels=error_heatmap(rendered, reference))
         data = " ".join(f'data-{k}="{_fmt(view.get(k), ".6f", "nan")}"' for k in ("psnr", "ssim", "lpips"))
         rows.append(
             f'<tr {data} data-name="{index}"><td>{html.escape(view["view"])}</td><td>{page.figure(gt, "Cycles")}</td>'

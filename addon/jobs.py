@@ -1,0 +1,266 @@
+"""Background jobs the add-on starts and watches: training (the backend's own Python) and
+dataset generation (a background Blender). Plain Python, no bpy and no torch, so tests drive
+it without Blender; the panel only draws what ``poll()`` returns and calls these methods.
+
+A job is found again from its folder alone (reopening the .blend): ``<folder>.job.json``
+beside the run or dataset folder records the process id and command, and the run's
+``events.jsonl`` (training) or the images on disk (datasets) say how far it got. The
+process's output goes to ``<folder>.log`` beside it, whose tail explains a crash.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+LOG_TAIL_LINES = 12
+
+
+@dataclass
+class JobStatus:
+    """What the panel shows. ``state``: idle, running, done, cancelled, failed."""
+
+    state: str
+    fraction: float = 0.0  # 0..1 of the work
+    detail: str = ""  # one line: iteration, PSNR, views...
+    seconds_left: float | None = None
+    psnr: float | None = None
+    iteration: int | None = None
+    error: str = ""  # failed: the tail of the process's output
+    extra: dict = field(default_factory=dict)
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def _tail(path: Path, lines: int = LOG_TAIL_LINES) -> str:
+    if not path.is_file():
+        return ""
+    text = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    return "\n".join(line for line in text[-lines:] if line.strip())
+
+
+class _Job:
+    """A process started with its output in ``<folder>.log`` and its record in ``<folder>.job.json``."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = Path(folder)
+        self._process: subprocess.Popen | None = None
+
+    @property
+    def log_path(self) -> Path:
+        return self.folder.with_name(self.folder.name + ".log")
+
+    @property
+    def record_path(self) -> Path:
+        return self.folder.with_name(self.folder.name + ".job.json")
+
+    def record(self) -> dict | None:
+        try:
+            return json.loads(self.record_path.read_text())
+        except (OSError, json.JSONDecodeError):
+            return None
+
+    def _launch(self, command: list[str], env: dict[str, str] | None = None, cwd: Path | None = None) -> None:
+        if self.is_running():
+            raise RuntimeError(f"{self.folder}: a job is already running for this folder (pid {self.record()['pid']})")
+        self.folder.parent.mkdir(parents=True, exist_ok=True)
+        log = open(self.log_path, "w", encoding="utf-8")
+        # A new session: Blender's Ctrl+C or closing does not reach it, and cancel is ours to send.
+        options = {"start_new_session": True} if os.name != "nt" else {"creationflags": subprocess.CREATE_NEW_PROCESS_GROUP}
+        self._process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                         env=env, cwd=cwd, **options)
+        log.close()
+        self.record_path.write_text(json.dumps({"pid": self._process.pid, "command": command, "started": time.time()}))
+
+    def returncode(self) -> int | None:
+        """The exit code when this object started the process and it has ended; else None."""
+        return None if self._process is None else self._process.poll()
+
+    def is_running(self) -> bool:
+        if self._process is not None:
+            return self._process.poll() is None
+        record = self.record()
+        return bool(record) and _process_alive(int(record["pid"]))
+
+    def _signal(self, sig: int) -> None:
+        record = self.record()
+        if self._process is not None and self._process.poll() is None:
+            self._process.send_signal(sig)
+        elif record and _process_alive(int(record["pid"])):
+            os.kill(int(record["pid"]), sig)
+
+    def cancel(self) -> None:
+        """Ask the job to stop (it finishes its step and saves first)."""
+        self._signal(signal.SIGTERM if os.name != "nt" else signal.CTRL_BREAK_EVENT)
+
+    def kill(self) -> None:
+        """Stop at once, saving nothing (what a crash looks like)."""
+        self._signal(signal.SIGKILL if os.name != "nt" else signal.SIGTERM)
+
+    def wait(self, timeout: float | None = None) -> int | None:
+        if self._process is not None:
+            return self._process.wait(timeout)
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self.is_running():
+            if deadline is not None and time.monotonic() > deadline:
+                raise TimeoutError(f"{self.folder}: job still running after {timeout} s")
+            time.sleep(0.2)
+        return None
+
+    def _ended_badly(self, finished: bool) -> JobStatus | None:
+        """A failed status when the process is gone without finishing its work."""
+        code = self.returncode()
+        if finished or self.is_running():
+            return None
+        if code is None and self.record() is None:
+            return None  # never started here
+        reason = f"exited with code {code}" if code is not None else "is no longer running"
+        if code is not None and code < 0:
+            reason = f"was killed by signal {-code}"
+        tail = _tail(self.log_path)
+        return JobStatus("failed", error=f"the process {reason}." + (f"\n{tail}" if tail else ""))
+
+
+def read_events(run: Path) -> list[dict]:
+    """The run's event log; a line cut short by a kill is skipped."""
+    path = Path(run) / "events.jsonl"
+    if not path.is_file():
+        return []
+    events = []
+    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+        try:
+            events.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return events
+
+
+class TrainingJob(_Job):
+    """``python -m nerf_backend train`` in the backend's Python, watched through the run's events."""
+
+    def __init__(self, run: Path) -> None:
+        super().__init__(run)
+
+    @property
+    def run(self) -> Path:
+        return self.folder
+
+    @property
+    def preview_path(self) -> Path:
+        return self.run / "preview.png"
+
+    def start(self, python: str, source_root: Path, dataset: Path, preset: str, iterations: int | None = None,
+              max_seconds: float | None = None, device: str = "auto", resume: bool = False,
+              overwrite: bool = False) -> None:
+        command = [python, "-m", "nerf_backend", "train", str(dataset), "--out", str(self.run), "--no-progress",
+                   "--device", device]
+        command += ["--resume"] if resume else ["--preset", preset]
+        if iterations is not None:
+            command += ["--iters", str(iterations)]
+        if max_seconds is not None:
+            command += ["--max-seconds", str(max_seconds)]
+        if overwrite:
+            command.append("--overwrite")
+        env = dict(os.environ, PYTHONPATH=str(source_root), PYTHONUNBUFFERED="1")
+        self._launch(command, env=env)
+
+    def poll(self) -> JobStatus:
+        events = read_events(self.run)
+        done = [e for e in events if e.get("event") == "done"]
+        starts = [e for e in events if e.get("event") == "start"]
+        last_start = events.index(starts[-1]) if starts else 0
+        finished = bool(done) and events.index(done[-1]) > last_start
+        failure = self._ended_badly(finished)
+        errors = [e for e in events[last_start:] if e.get("event") == "error"]
+        if failure is not None:
+            if errors:
+                failure.error = errors[-1].get("message", "") + "\n" + failure.error
+            return failure
+        if not events and not self.is_running():
+            return JobStatus("idle")
+        start = starts[-1] if starts else {}
+        progress = [e for e in events if e.get("event") in ("train", "val", "checkpoint")]
+        latest = progress[-1] if progress else {}
+        iteration = latest.get("iteration", start.get("iteration", 0))
+        elapsed = latest.get("elapsed_s", 0.0)
+        target, budget = start.get("target_iterations"), start.get("max_seconds")
+        fractions = [iteration / target if target else 0.0]
+        if budget:
+            fractions.append(elapsed / budget)
+        fraction = min(1.0, max(fractions))
+        vals = [e for e in events if e.get("event") == "val"]
+        trains = [e for e in events if e.get("event") == "train"]
+        psnr = vals[-1]["psnr"] if vals else (trains[-1]["psnr"] if trains else None)
+        seconds_left = elapsed * (1 - fraction) / fraction if 0 < fraction < 1 else None
+        detail = f"iteration {iteration}" + (f" of {target}" if target and not budget else "")
+        if psnr is not None:
+            detail += f", PSNR {psnr:.2f} dB" + (" (validation)" if vals else " (batch)")
+        if finished:
+            reason = done[-1].get("reason")
+            state = "cancelled" if reason == "cancelled" else "done"
+            return JobStatus(state, 1.0 if state == "done" else fraction, detail, None, psnr, iteration,
+                             extra={"reason": reason, "val_psnr": done[-1].get("val_psnr")})
+        return JobStatus("running", fraction, detail, seconds_left, psnr, iteration)
+
+
+class DatasetJob(_Job):
+    """``blender -b SCENE --python datasets_gen/generate.py -- ...`` rendering a dataset,
+    watched by counting the images written."""
+
+    SPLITS = ("train", "val", "test")
+
+    def __init__(self, out: Path) -> None:
+        super().__init__(out)
+
+    def start(self, blender: str, blend_file: Path, source_root: Path, arguments: list[str]) -> None:
+        script = Path(source_root) / "datasets_gen" / "generate.py"
+        record = {split: arguments[arguments.index(f"--{split}-views") + 1] for split in self.SPLITS
+                  if f"--{split}-views" in arguments}
+        self._views = {split: int(count) for split, count in record.items()}
+        command = [blender, "-b", str(blend_file), "--python", str(script), "--", *arguments,
+                   "--out", str(self.folder), "--no-progress"]
+        self._launch(command)
+        data = self.record() or {}
+        data["views"] = self._views
+        self.record_path.write_text(json.dumps(data))
+
+    def poll(self) -> JobStatus:
+        complete = all((self.folder / f"transforms_{split}.json").is_file() for split in self.SPLITS)
+        failure = self._ended_badly(complete)
+        if failure is not None:
+            return failure
+        record = self.record() or {}
+        views = record.get("views", {})
+        expected = sum(views.values())
+        written = sum(len(list((self.folder / split).glob("r_*.png"))) if (self.folder / split).is_dir() else 0
+                      for split in self.SPLITS)
+        if complete and not self.is_running():
+            return JobStatus("done", 1.0, f"{written} views written")
+        if not self.is_running() and written == 0:
+            return JobStatus("idle")
+        fraction = min(1.0, written / expected) if expected else 0.0
+        return JobStatus("running", fraction, f"{written} of {expected or '?'} views rendered")
+
+
+def python_in_venv(venv: Path) -> Path:
+    return Path(venv) / ("Scripts/python.exe" if os.name == "nt" else "bin/python")
+
+
+def default_base_python() -> str:
+    """The interpreter a new backend environment is made from: this one (Blender's own
+    Python inside Blender)."""
+    return sys.executable

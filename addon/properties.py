@@ -1,0 +1,76 @@
+"""The add-on's settings: per-scene (saved in the .blend, so reopening it finds the dataset
+and the run again) and per-user preferences (the backend's Python)."""
+
+from __future__ import annotations
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+
+PRESETS = (
+    ("auto", "Auto", "Fast model shaped by the scene (bounds, materials, resolution): the best at equal time"),
+    ("fast", "Fast", "Factorised grids with empty-space skipping: minutes on a CPU"),
+    ("preview", "Preview", "A small NeRF MLP: the paper's method, scaled down"),
+    ("paper", "Paper", "The NeRF paper's model and settings: hours to days, GPU advised"),
+)
+DEVICES = (("auto", "Auto", "CUDA, then Apple's MPS, then the CPU"), ("cpu", "CPU", ""),
+           ("cuda", "CUDA", "NVIDIA GPU"), ("mps", "MPS", "Apple GPU"))
+
+
+class NerfSettings(bpy.types.PropertyGroup):
+    # Dataset
+    dataset_dir: StringProperty(name="Dataset folder", subtype="DIR_PATH", default="//nerf_dataset")
+    train_views: IntProperty(name="Train", default=100, min=1, max=10000)
+    val_views: IntProperty(name="Val", default=10, min=1, max=10000)
+    test_views: IntProperty(name="Test", default=50, min=1, max=10000)
+    resolution: IntProperty(name="Resolution", default=100, min=8, max=8192, description="Square image size in pixels")
+    samples: IntProperty(name="Cycles samples", default=64, min=1, max=65536)
+    render_device: EnumProperty(name="Render device", items=(("CPU", "CPU", ""), ("GPU", "GPU", "Cycles' GPU backend")),
+                                default="CPU")
+    sphere: BoolProperty(name="Full sphere", default=False, description="Train/val views on the full sphere, not the upper hemisphere")
+    depth_normals: EnumProperty(name="Depth/normals", default="test", items=(
+        ("none", "None", ""), ("test", "Test views", "Ground-truth depth and normals for the test views"),
+        ("all", "All views", "")))
+    seed: IntProperty(name="Seed", default=0, min=0)
+    # Training
+    run_dir: StringProperty(name="Run folder", subtype="DIR_PATH", default="//nerf_run")
+    preset: EnumProperty(name="Preset", items=PRESETS, default="auto")
+    budget_kind: EnumProperty(name="Budget", default="TIME", items=(
+        ("TIME", "Time", "Train for a number of seconds"), ("ITERATIONS", "Iterations", "Train for a number of steps")))
+    budget_seconds: FloatProperty(name="Seconds", default=120.0, min=1.0)
+    budget_iterations: IntProperty(name="Iterations", default=3000, min=1)
+    train_device: EnumProperty(name="Device", items=DEVICES, default="auto")
+    # Results of the last comparison (shown in the panel).
+    compare_psnr: FloatProperty(name="PSNR", default=0.0)
+    compare_ssim: FloatProperty(name="SSIM", default=0.0)
+    compare_lpips: StringProperty(name="LPIPS", default="")
+
+
+class NerfPreferences(bpy.types.AddonPreferences):
+    bl_idname = __package__
+
+    python_path: StringProperty(
+        name="Backend Python", subtype="FILE_PATH", default="",
+        description="The Python that runs training (needs torch). Empty: the one Set up backend makes")
+
+    def draw(self, context):
+        from . import operators
+
+        layout = self.layout
+        layout.prop(self, "python_path")
+        layout.label(text=f"In use: {operators.backend_python(context) or 'none yet'}")
+        layout.operator("nerf.setup_backend")
+
+
+CLASSES = (NerfSettings, NerfPreferences)
+
+
+def register() -> None:
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.nerf = PointerProperty(type=NerfSettings)
+
+
+def unregister() -> None:
+    del bpy.types.Scene.nerf
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

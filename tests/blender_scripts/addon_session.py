@@ -1,0 +1,112 @@
+"""A user's session with the installed extension, in real Blender (the bpy module), headless.
+
+Run as ``python addon_session.py EXTENSION.zip WORK_DIR REPORT.json`` with a Python that has bpy
+(and torch, which the add-on's training subprocess uses as its backend Python). Steps, each
+recorded in REPORT.json:
+
+1. install the zip into a fresh user extensions repository and enable it; list what registered;
+2. open ../shared/scenes/A.blend, generate a tiny dataset from the panel's operator (in this
+   process: the bpy module has no Blender binary to spawn);
+3. train the fast preset through the Train operator (a real backend subprocess), polling the
+   add-on's own job code as its timer would, until done;
+4. render the test views (loaded as images) and compare the active camera with Cycles;
+5. disable and remove the extension; list what is left.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import bpy
+
+ZIP, WORK, REPORT = Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3])
+SCENE = Path(__file__).resolve().parents[3] / "shared" / "scenes" / "A.blend"
+PACKAGE_ID = "nerf_from_blender"
+report: dict = {}
+
+
+def save() -> None:
+    REPORT.write_text(json.dumps(report, indent=1, default=str))
+
+
+def nerf_classes() -> list[str]:
+    return sorted(name for name in dir(bpy.types) if name.startswith(("NERF_PT_", "NERF_OT_")))
+
+
+# 1. install and enable
+repo = bpy.context.preferences.extensions.repos.new(name="test", module="test_repo", custom_directory=str(WORK / "repo"))
+result = bpy.ops.extensions.package_install_files(filepath=str(ZIP), repo=repo.module, enable_on_install=True)
+module = f"bl_ext.{repo.module}.{PACKAGE_ID}"
+report["install"] = {"result": sorted(result), "enabled": module in bpy.context.preferences.addons,
+                     "classes": nerf_classes(), "installed_files": sorted(p.name for p in (WORK / "repo" / PACKAGE_ID).iterdir())}
+save()
+
+# 2. a dataset from a real scene, through the panel's operator
+bpy.ops.wm.open_mainfile(filepath=str(SCENE))
+addon = bpy.context.preferences.addons[module]
+addon.preferences.python_path = sys.executable  # this Python has torch: the backend runs here
+settings = bpy.context.scene.nerf
+settings.dataset_dir = str(WORK / "dataset")
+settings.run_dir = str(WORK / "run")
+settings.train_views, settings.val_views, settings.test_views = 24, 2, 3
+settings.resolution, settings.samples = 32, 8
+operators = sys.modules[f"{module}.operators"]
+report["scene_warnings"] = operators.scene_warnings(bpy.context)
+start = time.time()
+report["generate"] = {"result": sorted(bpy.ops.nerf.generate_dataset("EXEC_DEFAULT")), "seconds": time.time() - start,
+                      "files": sorted(p.name for p in (WORK / "dataset").iterdir())}
+save()
+
+# 3. training in a backend subprocess, watched through the add-on's job code
+settings.preset, settings.budget_kind, settings.budget_iterations = "fast", "ITERATIONS", 300
+start = time.time()
+report["train"] = {"result": sorted(bpy.ops.nerf.train()), "returned_after_s": time.time() - start, "states": []}
+deadline = time.time() + 600
+while time.time() < deadline:
+    running = operators.poll_jobs()
+    state = operators.status[str(operators.run_dir(bpy.context))]
+    report["train"]["states"].append([state.state, round(state.fraction, 3), state.detail])
+    if not running:
+        break
+    time.sleep(1.0)
+report["train"]["final"] = {"state": state.state, "detail": state.detail, "error": state.error,
+                            "preview_image": operators.PREVIEW_IMAGE in bpy.data.images}
+save()
+
+# 4. results: test views as images, and the active camera against Cycles
+report["render_test_views"] = {"result": sorted(bpy.ops.nerf.render_test_views())}
+report["render_test_views"]["images"] = {image.name: list(image.size) for image in bpy.data.images
+                                         if image.name.startswith("NeRF test")}
+test_frame = json.loads((WORK / "dataset" / "transforms_test.json").read_text())
+frame = test_frame["frames"][1]["transform_matrix"]
+similarity = test_frame["world_to_nerf"]
+scale, translation = similarity["scale"], similarity["translation"]
+# The active camera: test view 1's pose mapped back from the NeRF frame into Blender's world.
+camera_data = bpy.data.cameras.new("compare")
+camera = bpy.data.objects.new("compare", camera_data)
+bpy.context.scene.collection.objects.link(camera)
+import mathutils  # noqa: E402
+
+matrix = mathutils.Matrix(frame)
+matrix.translation = (mathutils.Vector(matrix.translation) - mathutils.Vector(translation)) / scale
+camera.matrix_world = matrix
+bpy.context.scene.camera = camera
+report["compare"] = {"result": sorted(bpy.ops.nerf.compare()), "psnr": settings.compare_psnr,
+                     "ssim": settings.compare_ssim, "lpips": settings.compare_lpips,
+                     "images": {name: list(bpy.data.images[name].size) for name in
+                                ("Cycles active camera", "NeRF active camera", "NeRF difference") if name in bpy.data.images}}
+save()
+
+# 5. disable and remove
+import addon_utils  # noqa: E402
+
+addon_utils.disable(module, default_set=True)
+report["disable"] = {"enabled": module in bpy.context.preferences.addons, "classes": nerf_classes(),
+                     "scene_property": hasattr(bpy.types.Scene, "nerf")}
+result = bpy.ops.extensions.package_uninstall(repo_index=list(bpy.context.preferences.extensions.repos).index(repo),
+                                              pkg_id=PACKAGE_ID)
+report["uninstall"] = {"result": sorted(result), "left": (WORK / "repo" / PACKAGE_ID).exists()}
+save()

@@ -1,0 +1,129 @@
+"""The add-on's job handling, driven without Blender: a real backend training subprocess
+started, followed, cancelled, resumed and killed; a real background Blender rendering a
+dataset; the backend set-up failing clearly; the camera mapping's maths."""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import sys
+import time
+
+import pytest
+
+from addon.backend_setup import BackendSetup, check_backend
+from addon.camera_mapping import camera_to_nerf
+from addon.jobs import DatasetJob, TrainingJob
+from conftest import REPO_ROOT, SHARED_DIR
+
+
+def _wait_for(job, predicate, timeout=300.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        status = job.poll()
+        if predicate(status):
+            return status
+        time.sleep(0.3)
+    raise AssertionError(f"timed out; last status {job.poll()}")
+
+
+def test_training_job_follows_cancels_resumes_and_reports_a_crash(tiny_demo_dataset, tmp_path):
+    run = tmp_path / "run"
+    job = TrainingJob(run)
+    assert job.poll().state == "idle"
+    job.start(sys.executable, REPO_ROOT, tiny_demo_dataset, "fast", iterations=100_000)
+    running = _wait_for(job, lambda s: s.state == "running" and (s.iteration or 0) >= 20, timeout=180)
+    assert 0 < running.fraction < 1 and "iteration" in running.detail and running.psnr is not None
+    assert running.seconds_left is not None and running.seconds_left > 0
+
+    job.cancel()  # SIGTERM: the trainer finishes its step, saves and stops
+    job.wait(120)
+    cancelled = job.poll()
+    assert cancelled.state == "cancelled" and (run / "checkpoint.pt").is_file()
+    stopped_at = cancelled.iteration
+
+    # Blender was closed and reopened: a new job object finds the run from its folder alone.
+    reopened = TrainingJob(run)
+    assert reopened.poll().state == "cancelled" and not reopened.is_running()
+    reopened.start(sys.executable, REPO_ROOT, tiny_demo_dataset, "fast", iterations=stopped_at + 30, resume=True)
+    reopened.wait(300)
+    done = reopened.poll()
+    assert done.state == "done" and done.iteration == stopped_at + 30 and done.fraction == 1.0
+
+    # A crash (kill -9): reported as failed, with how it ended; Blender carries on.
+    crashing = TrainingJob(run)
+    crashing.start(sys.executable, REPO_ROOT, tiny_demo_dataset, "fast", iterations=100_000, resume=True)
+    _wait_for(crashing, lambda s: s.state == "running" and (s.iteration or 0) > stopped_at + 35, timeout=180)
+    crashing.kill()
+    crashing.wait(60)
+    failed = crashing.poll()
+    assert failed.state == "failed" and "killed by signal 9" in failed.error
+    assert TrainingJob(run).poll().state == "failed"  # found again after reopening, too
+
+
+def test_training_job_shows_the_backends_error(tmp_path):
+    job = TrainingJob(tmp_path / "run")
+    job.start(sys.executable, REPO_ROOT, tmp_path / "no-such-dataset", "fast", iterations=10)
+    job.wait(120)
+    status = job.poll()
+    assert status.state == "failed" and "exited with code 2" in status.error
+    assert "no-such-dataset: dataset folder not found" in status.error
+
+
+def test_dataset_job_renders_in_a_background_blender(tmp_path):
+    blender = shutil.which("blender")
+    if blender is None:
+        if os.environ.get("NERF_REQUIRE_BLENDER"):
+            pytest.fail("a blender binary is required here (NERF_REQUIRE_BLENDER)")
+        pytest.skip("no blender binary on this machine")
+    out = tmp_path / "dataset"
+    job = DatasetJob(out)
+    job.start(blender, SHARED_DIR / "scenes" / "A.blend", REPO_ROOT,
+              ["--train-views", "4", "--val-views", "1", "--test-views", "2", "--resolution", "16", "--samples", "2"])
+    fractions = []
+    deadline = time.monotonic() + 600
+    while job.is_running() and time.monotonic() < deadline:
+        fractions.append(job.poll().fraction)
+        time.sleep(0.2)
+    job.wait(60)
+    done = job.poll()
+    assert done.state == "done", done.error
+    assert fractions and fractions == sorted(fractions) and all(0 <= f <= 1 for f in fractions)
+    assert (out / "transforms_test.json").is_file() and job.log_path.is_file()
+
+
+def test_backend_check_names_what_the_python_has():
+    ok, message = check_backend(sys.executable)
+    assert ok and message.startswith("torch ") and ("CPU only" in message or "GPU" in message)
+    ok, message = check_backend("/no/such/python")
+    assert not ok and "/no/such/python" in message
+
+
+def test_backend_setup_fails_clearly_when_pip_cannot_install(tmp_path):
+    requirements = tmp_path / "requirements.txt"
+    requirements.write_text("nerf-from-blender-no-such-package==9.9.9\n")
+    setup = BackendSetup(tmp_path / "venv", sys.executable, requirements)
+    setup.start()
+    setup.wait(600)
+    status = setup.poll()
+    assert status.state == "failed"
+    assert status.error.startswith("installing the backend's packages")
+    assert "nerf-from-blender-no-such-package" in status.error  # pip's own words, kept
+    assert (tmp_path / "venv").is_dir()  # the environment itself was made
+
+
+def test_camera_mapping_applies_the_datasets_similarity():
+    angle = 0.3
+    rotation = [[math.cos(angle), -math.sin(angle), 0.0], [math.sin(angle), math.cos(angle), 0.0], [0.0, 0.0, 1.0]]
+    # An object scale of 3 on the camera: only its rotation and position matter.
+    matrix = [[3 * rotation[r][c] for c in range(3)] + [p] for r, p in zip(range(3), (1.0, -2.0, 0.5))]
+    matrix.append([0.0, 0.0, 0.0, 1.0])
+    mapped = camera_to_nerf(matrix, {"scale": 2.0, "translation": [0.1, 0.2, -0.3]})
+    for r in range(3):
+        for c in range(3):
+            assert mapped[r][c] == pytest.approx(rotation[r][c], abs=1e-12)
+    assert [mapped[r][3] for r in range(3)] == pytest.approx([2.1, -3.8, 0.7])
+    assert mapped[3] == [0.0, 0.0, 0.0, 1.0]
+    with pytest.raises(ValueError):
+        camera_to_nerf([[0.0] * 4] * 4, {"scale": 1.0})
