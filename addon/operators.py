@@ -23,6 +23,7 @@ BACKEND_TIMEOUT_S = 3600
 _jobs: dict[str, object] = {}  # folder → job (keeps the Popen that started it)
 status: dict[str, JobStatus] = {}  # folder → last polled status, drawn by the panel
 _setup: BackendSetup | None = None
+_scene_warnings: list[str] = []  # shown by Generate dataset's confirmation dialog
 
 
 # ---------------------------------------------------------------- where things are
@@ -181,21 +182,20 @@ class NERF_OT_generate_dataset(bpy.types.Operator):
     bl_idname = "nerf.generate_dataset"
     bl_label = "Generate dataset"
 
-    warnings: list = []
-
     def invoke(self, context, event):
+        global _scene_warnings
         try:
-            self.warnings = scene_warnings(context)
+            _scene_warnings = scene_warnings(context)
         except Exception as exc:  # the generator's own errors name the problem
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        if self.warnings:
+        if _scene_warnings:
             return context.window_manager.invoke_props_dialog(self, width=500)
         return self.execute(context)
 
     def draw(self, context):
         self.layout.label(text="The scene checks found:")
-        for line in self.warnings:
+        for line in _scene_warnings:
             self.layout.label(text=str(line)[:120], icon="ERROR")
 
     def execute(self, context):

@@ -18,7 +18,9 @@ import json
 import math
 import multiprocessing
 import resource
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -178,6 +180,10 @@ def _child(queue, *args) -> None:
         queue.put(("error", f"{type(exc).__name__}: {exc}"))
 
 
+def _raise_exit(signum, frame) -> None:
+    raise SystemExit(128 + signum)
+
+
 def run_bench(dataset: Path, variants: list[Variant], out_dir: Path, budget_seconds: float | None,
               iterations: int | None, points: int = 6, curve_views: int = 8, seed: int = 0,
               device: str = "auto", overwrite: bool = False) -> dict:
@@ -188,16 +194,28 @@ def run_bench(dataset: Path, variants: list[Variant], out_dir: Path, budget_seco
     out_dir.mkdir(parents=True, exist_ok=True)
     context = multiprocessing.get_context("spawn")
     results = []
-    for variant in variants:
-        queue = context.Queue()
-        process = context.Process(target=_child, args=(queue, str(dataset), variant, str(out_dir), budget_seconds,
-                                                       iterations, points, curve_views, seed, device))
-        process.start()
-        status, payload = queue.get()
-        process.join()
-        if status != "ok":
-            raise NerfError(f"bench: variant {variant.name!r} failed: {payload}")
-        results.append(payload)
+    # SIGTERM becomes an exception here, so that the variant's process is stopped with us
+    # (an orphan would go on training and hold its run folder's lock).
+    previous = signal.signal(signal.SIGTERM, _raise_exit) if threading.current_thread() is threading.main_thread() else None
+    try:
+        for variant in variants:
+            queue = context.Queue()
+            process = context.Process(target=_child, args=(queue, str(dataset), variant, str(out_dir), budget_seconds,
+                                                           iterations, points, curve_views, seed, device))
+            process.start()
+            try:
+                status, payload = queue.get()
+                process.join()
+            finally:
+                if process.is_alive():  # we are being stopped: so is the variant (SIGTERM would only end its segment)
+                    process.kill()
+                    process.join()
+            if status != "ok":
+                raise NerfError(f"bench: variant {variant.name!r} failed: {payload}")
+            results.append(payload)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     report = {
         "dataset": str(dataset.resolve()), "seed": seed, "device": device,
         "budget": {"seconds": budget_seconds} if budget_seconds is not None else {"iterations": iterations},

@@ -38,8 +38,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--test-views", type=int, default=50)
     parser.add_argument("--samples", type=int, default=64, help="Cycles samples per pixel")
     # auto: measured best at equal time by `python -m nerf_backend bench out/demo/dataset
-    # --presets fast,auto,preview --budget-seconds 120` on 2 CPU cores (test PSNR after 120 s:
-    # auto 36.28 dB, fast 35.39 dB, preview 26.12 dB; docs/bench_demo_100px.md).
+    # --presets preview,fast,auto --budget-seconds 120` on 2 CPU cores (test PSNR after 120 s:
+    # auto 36.05 dB, fast 35.22 dB, preview 26.17 dB; docs/bench_demo_100px.md).
     parser.add_argument("--preset", default="auto")
     parser.add_argument("--train-seconds", type=float, default=120.0)
     parser.add_argument("--seed", type=int, default=0)

@@ -56,7 +56,11 @@ def test_installs_enables_and_registers(session):
     assert {"blender_manifest.toml", "nerf_backend", "datasets_gen"} <= set(install["installed_files"])
 
 
-def test_generate_operator_writes_the_dataset(session):
+def test_generate_operator_shows_the_scene_checks_and_writes_the_dataset(session):
+    # A.blend is an EEVEE scene with Filmic colour: the dialog before rendering says both.
+    warnings = session["scene_warnings"]
+    assert any("rendered with Cycles instead" in w for w in warnings), warnings
+    assert any("view transform 'Filmic'" in w for w in warnings), warnings
     generate = session["generate"]
     assert generate["result"] == ["FINISHED"]
     assert {"transforms_train.json", "transforms_val.json", "transforms_test.json", "scene_profile.json"} <= set(generate["files"])
@@ -64,7 +68,7 @@ def test_generate_operator_writes_the_dataset(session):
 
 def test_train_returns_at_once_and_the_job_is_followed_to_the_end(session):
     train = session["train"]
-    assert train["result"] == ["FINISHED"] and train["returned_after_s"] < 10
+    assert train["result"] == ["FINISHED"] and train["returned_after_s"] < 10 and train["timer_registered"]
     running = [s for s in train["states"] if s[0] == "running"]
     assert running and any(0 < fraction < 1 for _, fraction, _ in running)
     assert train["final"]["state"] == "done", train["final"]

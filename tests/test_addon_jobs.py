@@ -127,3 +127,19 @@ def test_camera_mapping_applies_the_datasets_similarity():
     assert mapped[3] == [0.0, 0.0, 0.0, 1.0]
     with pytest.raises(ValueError):
         camera_to_nerf([[0.0] * 4] * 4, {"scale": 1.0})
+
+
+@pytest.mark.slow
+def test_backend_setup_makes_a_working_backend(tmp_path):
+    """The success path, with this project's own pins (torch 2.13.0 CPU lies on disk here; the
+    shipped requirements ask for any recent torch, which on a GPU machine is a GPU build)."""
+    pins = [line for line in (REPO_ROOT / "requirements-dev.txt").read_text().splitlines()
+            if line.split("==")[0].split("<")[0] in {"torch", "numpy", "pillow", "imageio", "OpenEXR", "tqdm", "matplotlib"}]
+    requirements = tmp_path / "requirements.txt"
+    requirements.write_text("\n".join(pins) + "\n")
+    setup = BackendSetup(tmp_path / "venv", sys.executable, requirements)
+    setup.start()
+    setup.wait(1800)
+    status = setup.poll()
+    assert status.state == "done", status.error
+    assert status.detail.startswith("torch 2.13.0") and check_backend(str(setup.python))[0]

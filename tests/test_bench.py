@@ -3,11 +3,17 @@
 from __future__ import annotations
 
 import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
+import pytest
 import torch
 from PIL import Image
 
-from conftest import run_python
+from conftest import REPO_ROOT, run_python
 from nerf_backend.bench import Variant, ablation_order, ablation_variants, time_to_reach
 from nerf_backend.config import PRESETS
 from nerf_backend.fields import NerfField
@@ -97,3 +103,38 @@ def test_bench_step_times_both_sides(tiny_demo_dataset, tmp_path):
     assert report["parameters"]["project"] == report["parameters"]["plain"]
     assert report["rays_per_batch"] == 64 and report["steps"] == 2
     assert "plain PyTorch" in result.stdout
+
+
+def _children(pid: int) -> list[int]:
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                found.append(int(entry.name))
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads child processes from /proc")
+def test_stopping_bench_stops_the_variant_it_is_training(tiny_demo_dataset, tmp_path):
+    out = tmp_path / "bench"
+    bench = subprocess.Popen([sys.executable, "-m", "nerf_backend", "bench", str(tiny_demo_dataset), "--presets", "fast",
+                              "--iters", "1000000", "--points", "1", "--out", str(out)], cwd=REPO_ROOT,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    events = out / "runs" / "fast" / "events.jsonl"
+    deadline = time.monotonic() + 120
+    while not (events.is_file() and '"train"' in events.read_text()):
+        assert time.monotonic() < deadline and bench.poll() is None, "the variant never started training"
+        time.sleep(0.3)
+    children = _children(bench.pid)
+    assert children
+    bench.send_signal(signal.SIGTERM)
+    bench.wait(60)
+    deadline = time.monotonic() + 60
+    while any(Path(f"/proc/{pid}").exists() and "Z" not in Path(f"/proc/{pid}/stat").read_text().split()[2:3]
+              for pid in children):
+        assert time.monotonic() < deadline, "the variant's process outlived the bench"
+        time.sleep(0.3)

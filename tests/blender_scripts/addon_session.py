@@ -65,13 +65,16 @@ settings.preset, settings.budget_kind, settings.budget_iterations = "fast", "ITE
 start = time.time()
 report["train"] = {"result": sorted(bpy.ops.nerf.train()), "returned_after_s": time.time() - start, "states": []}
 deadline = time.time() + 600
+# The timer the operator registered does not fire in the background module: call it as Blender
+# would, until it unregisters itself (returns None).
+report["train"]["timer_registered"] = bpy.app.timers.is_registered(operators._tick)
 while time.time() < deadline:
-    running = operators.poll_jobs()
+    again = operators._tick()
     state = operators.status[str(operators.run_dir(bpy.context))]
     report["train"]["states"].append([state.state, round(state.fraction, 3), state.detail])
-    if not running:
+    if again is None:
         break
-    time.sleep(1.0)
+    time.sleep(again)
 report["train"]["final"] = {"state": state.state, "detail": state.detail, "error": state.error,
                             "preview_image": operators.PREVIEW_IMAGE in bpy.data.images}
 save()
