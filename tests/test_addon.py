@@ -13,6 +13,8 @@ import pytest
 from conftest import REPO_ROOT, SHARED_DIR, run_python
 
 PANELS = {"NERF_PT_dataset", "NERF_PT_training", "NERF_PT_results"}
+# Every operator is run in the session except Set up backend, which would pip-install the
+# shipped requirements (a GPU build of torch); its work is tested through BackendSetup.
 OPERATORS = {"NERF_OT_generate_dataset", "NERF_OT_train", "NERF_OT_cancel_training", "NERF_OT_render_test_views",
              "NERF_OT_render_active_camera", "NERF_OT_compare", "NERF_OT_open_report", "NERF_OT_setup_backend"}
 # Measured: the fast preset, 300 iterations on a 32×32 dataset of A.blend (24 training views),
@@ -83,6 +85,14 @@ def test_results_load_as_images_of_the_dataset_size(session):
     assert compare["result"] == ["FINISHED"]
     assert compare["images"] == {"Cycles active camera": [32, 32], "NeRF active camera": [32, 32],
                                  "NeRF difference": [32, 32]}
+
+
+def test_render_active_camera_report_and_cancel_operators(session):
+    assert session["render_active_camera"] == {"result": ["FINISHED"], "size": [32, 32]}
+    assert session["open_report"] == {"result": ["FINISHED"], "page": True}
+    cancel = session["cancel"]
+    assert cancel["resume"] == ["FINISHED"] and cancel["result"] == ["FINISHED"]
+    assert cancel["final"][0] == "cancelled" and cancel["final"][1] > 300
 
 
 def test_active_camera_nerf_render_clears_the_psnr_floor_against_cycles(session):

@@ -97,10 +97,30 @@ matrix = mathutils.Matrix(frame)
 matrix.translation = (mathutils.Vector(matrix.translation) - mathutils.Vector(translation)) / scale
 camera.matrix_world = matrix
 bpy.context.scene.camera = camera
+report["render_active_camera"] = {"result": sorted(bpy.ops.nerf.render_active_camera()),
+                                  "size": list(bpy.data.images["NeRF active camera"].size)}
 report["compare"] = {"result": sorted(bpy.ops.nerf.compare()), "psnr": settings.compare_psnr,
                      "ssim": settings.compare_ssim, "lpips": settings.compare_lpips,
                      "images": {name: list(bpy.data.images[name].size) for name in
                                 ("Cycles active camera", "NeRF active camera", "NeRF difference") if name in bpy.data.images}}
+save()
+
+# The report, written by the backend and opened (where there is a browser; none here).
+report["open_report"] = {"result": sorted(bpy.ops.nerf.open_report()),
+                         "page": (WORK / "run" / "report" / "index.html").is_file()}
+
+# Train more, then Cancel from the panel: the backend saves and stops.
+settings.budget_iterations = 100_000
+report["cancel"] = {"resume": sorted(bpy.ops.nerf.train(resume=True))}
+while operators.status[str(operators.run_dir(bpy.context))].state != "running" or \
+        (operators.status[str(operators.run_dir(bpy.context))].iteration or 0) < 320:
+    operators._tick()
+    time.sleep(0.5)
+report["cancel"]["result"] = sorted(bpy.ops.nerf.cancel_training())
+while operators._tick() is not None:
+    time.sleep(0.5)
+state = operators.status[str(operators.run_dir(bpy.context))]
+report["cancel"]["final"] = [state.state, state.iteration]
 save()
 
 # 5. disable and remove
