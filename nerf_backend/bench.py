@@ -17,6 +17,7 @@ import io
 import json
 import math
 import multiprocessing
+import queue as queue_module
 import resource
 import signal
 import sys
@@ -180,6 +181,17 @@ def _child(queue, *args) -> None:
         queue.put(("error", f"{type(exc).__name__}: {exc}"))
 
 
+def _result(queue, process) -> tuple[str, object]:
+    """The variant's result, or an error once its process has died without one (killed by
+    the system, say) instead of waiting for ever."""
+    while True:
+        try:
+            return queue.get(timeout=1.0)
+        except queue_module.Empty:
+            if not process.is_alive():
+                return "error", f"its process ended (exit code {process.exitcode}) without a result"
+
+
 def _raise_exit(signum, frame) -> None:
     raise SystemExit(128 + signum)
 
@@ -204,7 +216,7 @@ def run_bench(dataset: Path, variants: list[Variant], out_dir: Path, budget_seco
                                                            iterations, points, curve_views, seed, device))
             process.start()
             try:
-                status, payload = queue.get()
+                status, payload = _result(queue, process)
                 process.join()
             finally:
                 if process.is_alive():  # we are being stopped: so is the variant (SIGTERM would only end its segment)

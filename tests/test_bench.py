@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -138,3 +139,22 @@ def test_stopping_bench_stops_the_variant_it_is_training(tiny_demo_dataset, tmp_
               for pid in children):
         assert time.monotonic() < deadline, "the variant's process outlived the bench"
         time.sleep(0.3)
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads child processes from /proc")
+def test_a_variant_process_that_dies_is_an_error_not_a_hang(tiny_demo_dataset, tmp_path):
+    out = tmp_path / "bench"
+    bench = subprocess.Popen([sys.executable, "-m", "nerf_backend", "bench", str(tiny_demo_dataset), "--presets", "fast",
+                              "--iters", "1000000", "--points", "1", "--out", str(out)], cwd=REPO_ROOT,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    events = out / "runs" / "fast" / "events.jsonl"
+    deadline = time.monotonic() + 120
+    while not (events.is_file() and '"train"' in events.read_text()):
+        assert time.monotonic() < deadline and bench.poll() is None, "the variant never started training"
+        time.sleep(0.3)
+    for pid in _children(bench.pid):
+        if "spawn_main" in Path(f"/proc/{pid}/cmdline").read_text():
+            os.kill(pid, signal.SIGKILL)  # what the system's out-of-memory killer does
+    _, stderr = bench.communicate(timeout=60)
+    assert bench.returncode == 2
+    assert "variant 'fast' failed: its process ended (exit code -9) without a result" in stderr
