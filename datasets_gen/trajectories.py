@@ -32,6 +32,8 @@ RIG_BASE_ELEVATION: float = math.atan2(0.5, 4.0)
 TEST_SPIRAL_MAX_TILT: float = 0.7
 #: Track-To's "up" target: the camera's +Y is kept as close as possible to world +Z.
 WORLD_UP: Vector3 = (0.0, 0.0, 1.0)
+#: The image's up where the view is along WORLD_UP (Track-To's choice in that degenerate case).
+POLE_IMAGE_UP: Vector3 = (0.0, 1.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -75,14 +77,16 @@ def look_at(
 
     Blender/OpenGL camera convention (what Track-To with -Z forward and +Y up produces): the
     camera looks down its -Z axis, +X is image right, +Y is image up and leans towards `up`.
-    Raises ValueError when the view direction is parallel to `up` (roll is then undefined).
+    Looking along `up` (a camera at the pole), roll is undefined: as Track-To does, the
+    image's up is then world +Y, which for a camera straight above the target is the limit
+    of the views approaching the pole at azimuth 0.
     """
     forward = _normalized(_sub(target, position))
+    back = (-forward[0], -forward[1], -forward[2])
     right = _cross(forward, up)
     if _dot(right, right) < 1e-24:
-        raise ValueError("look_at: view direction is parallel to the up vector")
+        right = _cross(POLE_IMAGE_UP, back)
     right = _normalized(right)
-    back = (-forward[0], -forward[1], -forward[2])
     cam_up = _cross(back, right)
     return (
         (right[0], cam_up[0], back[0], float(position[0])),

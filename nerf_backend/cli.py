@@ -225,10 +225,20 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return _run(args)
-    except NerfError as exc:
+    except (NerfError, OSError) as exc:
+        # One line naming the file and what is wrong; the traceback only with --debug.
         if args.debug:
             raise
-        print(f"error: {exc}", file=sys.stderr)
+        if isinstance(exc, NerfError):
+            message = str(exc)
+        elif exc.filename is not None:  # a full disk, permission denied, a file too large...: "FILE: strerror"
+            names = exc.filename if exc.filename2 is None else f"{exc.filename} -> {exc.filename2}"
+            message = f"{names}: {exc.strerror or exc}"
+        else:
+            message = exc.strerror or str(exc) or type(exc).__name__
+        # A name from a dataset may hold a newline: escaped, so the error stays one line.
+        message = message.replace("\r", "\\r").replace("\n", "\\n")
+        print(f"error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

@@ -44,6 +44,12 @@ class TrainConfig:
     final_learning_rate: float = 5e-5
     lr_decay_steps: int = 500_000
     adam_eps: float = 1e-7
+    # The decay never takes the learning rate below this fraction of its start: runs longer
+    # than their schedule keep learning instead of freezing at a vanishing rate.
+    learning_rate_floor: float = 0.01
+    # "float32", or "bfloat16" / "float16": autocast runs the fields' products in that type
+    # (volume rendering and the loss stay float32; float16 also scales the loss).
+    precision: str = "float32"
     # Train on the centre of each image first: with a white background the all-white
     # image is a local minimum a NeRF falls into when most early rays miss the object.
     precrop_iterations: int = 500
@@ -57,7 +63,7 @@ class TrainConfig:
 
     def learning_rate_at(self, step: int) -> float:
         ratio = self.final_learning_rate / self.learning_rate
-        return self.learning_rate * ratio ** (step / self.lr_decay_steps)
+        return self.learning_rate * max(ratio ** (step / self.lr_decay_steps), self.learning_rate_floor)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

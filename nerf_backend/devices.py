@@ -23,3 +23,17 @@ def resolve_device(name: str) -> torch.device:
     if name not in ("cpu", "cuda", "mps"):
         raise NerfError(f"--device {name}: choose auto, cpu, cuda or mps")
     return torch.device(name)
+
+
+# The types ``TrainConfig.precision`` may name; None: no autocast.
+PRECISIONS: dict[str, torch.dtype | None] = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}
+
+
+def autocast_dtype(precision: str, device: torch.device) -> torch.dtype | None:
+    """The autocast type of a run's ``precision`` on ``device`` (None for float32)."""
+    if precision not in PRECISIONS:
+        raise NerfError(f"precision {precision!r}: choose one of {', '.join(PRECISIONS)}")
+    dtype = PRECISIONS[precision]
+    if dtype is not None and not torch.amp.is_autocast_available(device.type):
+        raise NerfError(f"precision {precision}: autocast is not available on {device.type}")
+    return dtype

@@ -72,7 +72,8 @@ class NerfField(nn.Module):
             if i in self.config.skips:
                 h = torch.cat([h, encoded], dim=-1)
             h = F.relu(layer(h))
-        raw = self.density_head(h).squeeze(-1)
+        # Volume rendering runs in float32 whatever precision autocast ran the layers in.
+        raw = self.density_head(h).squeeze(-1).float()
         if self.config.density_activation == "relu":
             density = F.relu(raw)
         elif self.config.density_activation == "softplus":
@@ -86,5 +87,5 @@ class NerfField(nn.Module):
         if self.config.view_dependent:
             h = torch.cat([self.feature(h), self.direction_encoding(directions)], dim=-1)
             h = F.relu(self.colour_hidden(h))
-        rgb = torch.sigmoid(self.colour_head(h))
+        rgb = torch.sigmoid(self.colour_head(h).float())
         return density, rgb

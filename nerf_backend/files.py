@@ -12,26 +12,55 @@ from typing import Any, Callable
 import imageio.v3 as iio
 import numpy as np
 
+from .errors import NerfError
+
+# The prefix and suffix of atomic_write's temporary files: a process killed mid-write (kill -9,
+# power loss) leaves one behind, which whoever next writes that folder removes.
+TEMPORARY_SUFFIX = ".tmp"
+
 
 def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     """Call ``write(tmp_path)`` then atomically move ``tmp_path`` to ``path``.
 
     If ``write`` fails (full disk, crash), ``path`` keeps its previous content and the
-    temporary file is removed.
+    temporary file is removed; a failure to write (a full disk, a file-size limit, no
+    permission) raises ``NerfError`` naming ``path`` and the system's reason.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
+    tmp: Path | None = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=TEMPORARY_SUFFIX, dir=path.parent)
+        os.close(fd)
+        tmp = Path(tmp_name)
         write(tmp)
         with open(tmp, "rb+") as handle:
             os.fsync(handle.fileno())
         os.replace(tmp, path)
+    except OSError as exc:
+        _discard(tmp)
+        kept = f"; the previous {path.name} is unchanged" if path.exists() else ""
+        raise NerfError(f"{path}: cannot write ({exc.strerror or exc}){kept}") from exc
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        _discard(tmp)
         raise
+
+
+def _discard(tmp: Path | None) -> None:
+    if tmp is not None:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+
+
+def remove_stale_temporaries(folder: Path) -> list[Path]:
+    """Delete the temporary files a killed writer left in ``folder``; call it only while no
+    other process writes there (e.g. holding the run folder's lock)."""
+    stale = [p for p in Path(folder).glob(f".*{TEMPORARY_SUFFIX}") if p.is_file()]
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return stale
 
 
 def write_json(path: Path, data: Any) -> None:
@@ -44,7 +73,10 @@ def write_json(path: Path, data: Any) -> None:
 def write_png(path: Path, image: np.ndarray) -> None:
     """Write a float image in [0, 1] (H×W×C) as an 8-bit PNG, rounding to nearest."""
     pixels = np.clip(np.round(np.asarray(image, dtype=np.float32) * 255.0), 0, 255).astype(np.uint8)
-    atomic_write(path, lambda tmp: iio.imwrite(tmp, pixels, extension=".png"))
+    # Encoded in memory, then written by atomic_write: a failed write is then one clean
+    # OSError, not one raised again when imageio's file object is garbage-collected.
+    encoded = iio.imwrite("<bytes>", pixels, extension=".png")
+    atomic_write(path, lambda tmp: tmp.write_bytes(encoded))
 
 
 def write_exr(path: Path, channels: dict[str, np.ndarray]) -> None:

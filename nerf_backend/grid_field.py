@@ -82,7 +82,8 @@ class GridField(nn.Module):
         return (x - self.box_min) / (self.box_max - self.box_min) * 2.0 - 1.0
 
     def density_from_features(self, summed: Tensor) -> Tensor:
-        return self.config.density_scale * F.softplus(summed + self.config.density_shift)
+        # float32 whatever precision autocast ran the products in: volume rendering needs it.
+        return self.config.density_scale * F.softplus(summed.float() + self.config.density_shift)
 
     def density(self, x: Tensor) -> Tensor:
         return self.density_from_features(self.density_grid(self.normalise(x)).sum(dim=-1))
@@ -91,7 +92,7 @@ class GridField(nn.Module):
         features = self.appearance_basis(self.appearance_grid(self.normalise(x)))
         if self.config.view_dependent:
             features = torch.cat([features, self.direction_encoding(directions)], dim=-1)
-        return torch.sigmoid(self.colour_mlp(features))
+        return torch.sigmoid(self.colour_mlp(features).float())
 
     @torch.no_grad()
     def density_volume(self) -> Tensor:

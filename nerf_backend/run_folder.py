@@ -12,6 +12,7 @@ Layout::
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import time
@@ -21,12 +22,13 @@ from typing import Any
 import torch
 
 from .errors import RunError
-from .files import atomic_write, write_json
+from .files import atomic_write, remove_stale_temporaries, write_json
 
 CONFIG_NAME = "config.json"
 EVENTS_NAME = "events.jsonl"
 CHECKPOINT_NAME = "checkpoint.pt"
 LOCK_NAME = ".lock"
+IN_USE = "another training is already using this run folder"
 
 
 class RunFolder:
@@ -63,9 +65,12 @@ class RunFolder:
     def log_event(self, event: str, **fields: Any) -> None:
         """Append one event line; flushed at once so a reader (the add-on) sees it live."""
         record = {"event": event, "time": time.time(), **fields}
-        with open(self.events_path, "a", encoding="utf-8") as handle:
-            handle.write(json.dumps(record) + "\n")
-            handle.flush()
+        try:
+            with open(self.events_path, "a", encoding="utf-8") as handle:
+                handle.write(json.dumps(record) + "\n")
+                handle.flush()
+        except OSError as exc:
+            raise RunError(f"{self.events_path}: cannot write ({exc.strerror or exc})") from exc
 
     def read_events(self) -> list[dict]:
         if not self.events_path.exists():
@@ -79,7 +84,11 @@ class RunFolder:
         return events
 
     def save_checkpoint(self, state: dict) -> None:
-        atomic_write(self.checkpoint_path, lambda tmp: torch.save(state, tmp))
+        # Serialised in memory first so that a write failure (a full disk) is the OS's
+        # error, not one of torch's; either way the previous checkpoint stays.
+        buffer = io.BytesIO()
+        torch.save(state, buffer)
+        atomic_write(self.checkpoint_path, lambda tmp: tmp.write_bytes(buffer.getbuffer()))
 
     def load_checkpoint(self, device: torch.device) -> dict:
         if not self.checkpoint_path.is_file():
@@ -98,12 +107,25 @@ class RunFolder:
             _lock_file(handle)
         except OSError:
             handle.close()
-            raise RunError(f"{self.path}: another training is already using this run folder") from None
+            raise RunError(f"{self.path}: {IN_USE}") from None
         handle.seek(0)
         handle.truncate()
         handle.write(str(os.getpid()))
         handle.flush()
         self._lock_handle = handle
+        remove_stale_temporaries(self.path)  # a killed trainer's half-written checkpoint
+
+    def in_use(self) -> bool:
+        """True while another process holds this folder's lock (creates nothing)."""
+        lock = self.path / LOCK_NAME
+        if not lock.is_file():
+            return False
+        with open(lock, "r+") as handle:
+            try:
+                _lock_file(handle)
+            except OSError:
+                return True
+        return False  # closing the handle released the probe's lock
 
     def release_lock(self) -> None:
         if self._lock_handle is not None:

@@ -63,7 +63,10 @@ def sample_pdf(
     t_edges = t_edges.detach()
     total = weights.sum(dim=-1, keepdim=True)
     uniform = torch.full_like(weights, 1.0 / weights.shape[-1])
-    pdf = torch.where(total > 0, weights / total.clamp_min(torch.finfo(weights.dtype).tiny), uniform)
+    # Divide by the total itself, however small: clamping it (to float's smallest normal)
+    # would shrink a denormal-weighted pdf to ~0 and push every sample into the last bin.
+    has_weight = total > 0
+    pdf = torch.where(has_weight, weights / torch.where(has_weight, total, torch.ones_like(total)), uniform)
     cdf = torch.cumsum(pdf, dim=-1).clamp(max=1.0)
     cdf = torch.cat([torch.zeros_like(cdf[:, :1]), cdf], dim=-1)  # [R, S+1]
     cdf[:, -1] = 1.0  # exact end, whatever the rounding of the sum

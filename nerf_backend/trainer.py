@@ -19,14 +19,14 @@ from .cameras import camera_rays, pixel_centres
 from .config import TrainConfig, preset_config, with_overrides
 from .auto import auto_config
 from .dataset import DatasetSplit, SceneBounds, composite, load_scene_bounds, load_scene_profile, load_split
-from .devices import resolve_device
+from .devices import autocast_dtype, resolve_device
 from .errors import NerfError, RunError
 from .files import write_png
 from .metrics import mse_to_psnr
 from .models import build_model, final_output
 from .ray_bounds import RayBounds, choose_ray_bounds
 from .render_views import render_image
-from .run_folder import LOCK_NAME, RunFolder
+from .run_folder import IN_USE, LOCK_NAME, RunFolder
 
 
 @dataclass
@@ -104,15 +104,25 @@ class _StopRequest:
             signal.signal(sig, handler)
 
 
+def _existing_files(run: RunFolder) -> list[Path]:
+    return [p for p in run.path.iterdir() if p.name != LOCK_NAME] if run.path.is_dir() else []
+
+
+def _refuse_to_overwrite(run: RunFolder, options: TrainOptions) -> None:
+    """A non-empty folder is reused only when resuming or told to overwrite."""
+    if not options.resume and not options.overwrite and _existing_files(run):
+        if run.in_use():
+            raise RunError(f"{run.path}: {IN_USE}")
+        raise RunError(f"{run.path}: run folder exists and is not empty; pass --resume to continue it or --overwrite to replace it")
+
+
 def _prepare_run_folder(run: RunFolder, options: TrainOptions) -> None:
-    """Refuse to reuse a non-empty folder unless resuming or told to overwrite."""
-    existing = [p for p in run.path.iterdir() if p.name != LOCK_NAME] if run.path.is_dir() else []
+    """Under the lock: check again, then empty the folder for a new run."""
+    _refuse_to_overwrite(run, options)
     if options.resume:
         run.read_config()  # raises a clear error if this is not a run
         return
-    if existing and not options.overwrite:
-        raise RunError(f"{run.path}: run folder exists and is not empty; pass --resume to continue it or --overwrite to replace it")
-    for path in existing:
+    for path in _existing_files(run):
         shutil.rmtree(path) if path.is_dir() else path.unlink()
 
 
@@ -156,6 +166,7 @@ def train(options: TrainOptions) -> TrainSummary:
     val_split = _load_val(dataset) if options.validate else None
     scene_bounds = load_scene_bounds(dataset)
     run = RunFolder(options.run)
+    _refuse_to_overwrite(run, options)  # before the lock: a refused folder gains no lock file
     run.acquire_lock()
     try:
         _prepare_run_folder(run, options)
@@ -209,6 +220,9 @@ def _train_locked(
         "train_views": len(train_split),
     })
 
+    amp_dtype = autocast_dtype(config.precision, device)
+    # float16's narrow range needs the loss scaled so small gradients do not flush to zero.
+    scaler = torch.amp.GradScaler(device.type, enabled=amp_dtype is torch.float16)
     torch.manual_seed(seed)
     model = build_model(config, ray_bounds.box).to(device)
     batch_generator = torch.Generator().manual_seed(seed)
@@ -221,17 +235,33 @@ def _train_locked(
     optimizer = _optimizer(model, config)  # built for the parameters as they now are
     if state is not None:
         optimizer.load_state_dict(state["optimizer"])
+        if "grad_scaler" in state:
+            scaler.load_state_dict(state["grad_scaler"])
         batch_generator.set_state(state["batch_rng"])
         sample_generator.set_state(state["sample_rng"].to(sample_generator.get_state().device))
         iteration, train_seconds = state["iteration"], state["train_seconds"]
 
     def checkpoint() -> None:
+        # A non-finite weight never replaces the last good checkpoint.
+        broken = [name for name, value in model.state_dict().items()
+                  if value.is_floating_point() and not bool(torch.isfinite(value).all())]
+        if broken:
+            diverged(f"weights {', '.join(broken[:3])} are not finite")
         run.save_checkpoint({
             "iteration": iteration, "train_seconds": train_seconds, "model": model.state_dict(),
             "optimizer": optimizer.state_dict(), "batch_rng": batch_generator.get_state(),
             "sample_rng": sample_generator.get_state(), "config": config.to_dict(),
+            **({"grad_scaler": scaler.state_dict()} if scaler.is_enabled() else {}),
         })
         run.log_event("checkpoint", iteration=iteration, elapsed_s=train_seconds, path=str(run.checkpoint_path))
+
+    def diverged(what: str) -> None:
+        kept = (f"the last good checkpoint is kept at {run.checkpoint_path}" if run.checkpoint_path.exists()
+                else "no checkpoint had been written yet")
+        message = (f"training diverged at iteration {iteration} ({what}); {kept}; "
+                   f"try a lower learning_rate (--set learning_rate=...)")
+        run.log_event("error", iteration=iteration, message=message)
+        raise NerfError(message)
 
     rgba = train_split.rgba.to(device)
     poses = train_split.poses.to(device)
@@ -268,18 +298,18 @@ def _train_locked(
                 group["lr"] = group["initial_lr"] * decay
             if model.before_step(iteration):
                 optimizer = _optimizer(model, config)  # the grids were resampled
-            outputs = model(origins, directions, t_near, t_far, background=background, generator=sample_generator)
-            errors = [F.mse_loss(output.rgb, target) for output in outputs]
+            with torch.autocast(device.type, dtype=amp_dtype or torch.float32, enabled=amp_dtype is not None):
+                outputs = model(origins, directions, t_near, t_far, background=background,
+                                generator=sample_generator)
+            errors = [F.mse_loss(output.rgb.float(), target) for output in outputs]
             loss = torch.stack(errors).sum()
             final_mse = errors[-1]
             if not torch.isfinite(loss):
-                message = (f"training diverged at iteration {iteration} (loss {loss.item()}); "
-                           f"the last good checkpoint is kept at {run.checkpoint_path}")
-                run.log_event("error", iteration=iteration, message=message)
-                raise NerfError(message)
+                diverged(f"loss {loss.item()}")
             optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
+            scaler.scale(loss).backward()
+            scaler.step(optimizer)
+            scaler.update()
             iteration += 1
             train_seconds += time.perf_counter() - step_start
             progress.step(iteration, train_seconds)

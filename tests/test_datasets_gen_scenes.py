@@ -4,16 +4,21 @@ scenes nobody here made (../shared/scenes).  Real bpy, real Cycles, tiny renders
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import pytest
 from PIL import Image
 
+from datasets_gen.trajectories import RIG_RADIUS
+from conftest import run_python
 from test_datasets_gen import SCRIPTS, load_split, read_exr, require_blender, run_module
 
 TINY = ["--resolution", "24", "--train-views", "3", "--val-views", "1", "--test-views", "2", "--samples", "4",
@@ -102,37 +107,157 @@ def test_nothing_to_render_is_refused_even_with_allow_missing(scenes: Path, tmp_
         assert object_name in line
 
 
-def test_far_and_huge_scene_gives_the_unit_scene_dataset(scenes: Path, tmp_path: Path) -> None:
-    """The same object at the origin at scale 1 and at (1e5, -2e5, 3e4) at scale 1000."""
-    datasets = {}
-    for name in ("unit", "far"):
-        datasets[name] = tmp_path / name
-        result = run_module(str(scenes / f"{name}.blend"), "--out", str(datasets[name]), *TINY)
+# --- issue 7: the same object at any scale and place gives the same dataset --------------------
+# make_scenes.PLACEMENTS: "unit" (scale 1 at the origin), "tiny" (scale 1e-3), "huge" (scale 1e4),
+# "far" (scale 1, 1e5 units from the origin) and "far_huge" (scale 1e4 at (1e5, -2e5, 3e4)).
+PLACED = ("tiny", "huge", "far", "far_huge")
+#: Training for the PSNR comparison: the fast preset, briefly, with one seed.
+PSNR_ITERS = 200
+#: Measured at 200 iterations, seed 0 (Blender 5.0.1, torch CPU): unit 20.979 dB; tiny -0.005,
+#: huge -0.013, far -0.169, far_huge -0.039 dB from it.  Seed 1: unit 19.734, far +0.022: the
+#: far dataset's float32 perturbations (0.7 levels, 0.003 in poses) move training by a few tenths
+#: at most, while another seed moves it by 1.2 dB.  0.5 dB is ~3x the largest measured difference.
+PSNR_MARGIN_DB = 0.5
+
+
+@pytest.fixture(scope="module")
+def placed(scenes: Path, tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], Path]:
+    """name -> the dataset of make_scenes' placed object NAME, rendered once with the TINY settings."""
+    out = tmp_path_factory.mktemp("placed")
+
+    @functools.cache
+    def dataset(name: str) -> Path:
+        result = run_module(str(scenes / f"{name}.blend"), "--out", str(out / name), *TINY)
         assert result.returncode == 0, result.stderr
-    unit_profile, far_profile = (json.loads((datasets[name] / "scene_profile.json").read_text())
-                                 for name in ("unit", "far"))
+        return out / name
+
+    return dataset
+
+
+def float32_step(profile: dict) -> float:
+    """Blender's float32 step at the largest |coordinate| of the scene and its cameras, in NeRF units.
+
+    Blender holds object and camera matrices in float32.  Every dataset camera is RIG_RADIUS (NeRF
+    units) from the bounding sphere's centre, farther than any vertex, so no coordinate exceeds
+    max|centre| + RIG_RADIUS / scale; one float32 step there, times the frame's scale, is `e`.
+    """
+    frame = profile["world_to_nerf"]
+    extent = max(abs(c) for c in frame["sphere_blender"]["centre"]) + RIG_RADIUS / frame["scale"]
+    return frame["scale"] * float(np.spacing(np.float32(extent)))
+
+
+@pytest.mark.parametrize("name", PLACED)
+def test_scaled_or_far_scene_gives_the_unit_scene_dataset(scenes: Path, placed: Callable[[str], Path],
+                                                          name: str) -> None:
+    """Issue 7: the object at scale 1e-3, 1e4, 1e5 units away gives the unit scene's dataset.
+
+    Tolerances come from float32 in Blender.  `e` (float32_step) is one float32 step at the scenes'
+    coordinates in NeRF units, summed over the two datasets compared: 8.5e-7 (tiny), 7.8e-7 (huge),
+    1.8e-6 (far_huge: |x| up to 2.4e5, a 2**-6 step times scale 9e-5) and 0.0070 (far: |x| up to
+    66671, in [2**16, 2**17), a 2**-7 = 0.0078 step times scale 0.899), so the first three must
+    match to ~1e-6 and "far" only to its float32 steps.  Measured on Blender 5.0.1 (max over the
+    six views), tiny / huge / far_huge: poses 1.5e-7 / 1.3e-7 / 8.3e-7 (allowed 4.2e-7 / 3.9e-7 /
+    9.2e-7), bounds 8e-9, scale ratios within 5e-8 of nominal, identical PNGs, depth 2.2e-6 /
+    2.4e-6 / 3.8e-6 (allowed 1.4e-5 / 1.4e-5 / 2.0e-5).  far: poses 0.0032 (allowed 0.0035),
+    bounds 6.6e-4 (0.019), scale ratio 1 + 1.0e-3 (0.0099), mean image difference 0.69 levels
+    (allowed 5.2), depth median <= 0.0034 and 97.8 % of pixels within the allowed 0.0365 (the rest
+    grazing or occluding-edge pixels, up to 0.044).
+    """
+    unit, case = placed("unit"), placed(name)
+    offset, scale = (json.loads((scenes / "scenes.json").read_text())["placements"][name][key]
+                     for key in ("offset", "scale"))
+    unit_profile, case_profile = (json.loads((path / "scene_profile.json").read_text()) for path in (unit, case))
+    unit_frame, case_frame = unit_profile["world_to_nerf"], case_profile["world_to_nerf"]
+    e = float32_step(unit_profile) + float32_step(case_profile)
+    target = case_frame["target_radius"]
+    assert unit_frame["target_radius"] == target
+
+    # The frame is fitted to the vertices Blender holds: each part's float32 world matrix moves its
+    # vertices by <= e/2 per axis, so the bounds' centre moves by <= e/2 per axis and the bounding
+    # radius by <= sqrt(3) e (NeRF units): the scale by a factor within sqrt(3) e / target_radius of the
+    # nominal one, and a bound by <= e/2 + e/2 + sqrt(3) e (the radius error times |bound - centre|
+    # <= radius).
+    assert case_frame["scale"] / unit_frame["scale"] == pytest.approx(1.0 / scale,
+                                                                    rel=math.sqrt(3) * e / target + 1e-12)
+    frame_atol = (1.0 + math.sqrt(3)) * e + 1e-9
     for key in ("min", "max"):
-        np.testing.assert_allclose(far_profile["bounds"][key], unit_profile["bounds"][key], atol=1e-6)
-    assert far_profile["world_to_nerf"]["scale"] == pytest.approx(unit_profile["world_to_nerf"]["scale"] / 1000)
-    # The far object's centre maps to where the unit object's does (both: the bounds' centre -> origin).
-    far_frame = far_profile["world_to_nerf"]
-    np.testing.assert_allclose(np.asarray(far_frame["matrix"]) @ [1e5, -2e5, 3e4, 1.0],
-                               np.asarray(unit_profile["world_to_nerf"]["matrix"]) @ [0, 0, 0, 1.0], atol=1e-6)
+        np.testing.assert_allclose(case_profile["bounds"][key], unit_profile["bounds"][key], atol=frame_atol)
+    # The placing Empty's origin maps to where the unit object's origin does.
+    np.testing.assert_allclose(np.asarray(case_frame["matrix"]) @ [*offset, 1.0],
+                               np.asarray(unit_frame["matrix"]) @ [0.0, 0.0, 0.0, 1.0], atol=frame_atol)
+
     for split in ("train", "val", "test"):
-        unit, far = load_split(datasets["unit"], split), load_split(datasets["far"], split)
-        for unit_frame, far_frame in zip(unit["frames"], far["frames"], strict=True):
-            # Blender holds the far camera in float32 at |x| ~ 2e5 (a 0.016 step), i.e. 1.4e-5 in the NeRF frame.
-            np.testing.assert_allclose(far_frame["transform_matrix"], unit_frame["transform_matrix"], atol=5e-5)
-            with Image.open(datasets["unit"] / (unit_frame["file_path"] + ".png")) as a, \
-                    Image.open(datasets["far"] / (far_frame["file_path"] + ".png")) as b:
-                difference = np.abs(np.asarray(a).astype(float) - np.asarray(b).astype(float))
-            assert difference.mean() < 0.5, "images must be nearly equal (mean difference below half a level)"
-        if split == "test":
-            for unit_frame, far_frame in zip(unit["frames"], far["frames"]):
-                z_unit = read_exr(datasets["unit"] / unit_frame["depth_file_path"])["Z"]
-                z_far = read_exr(datasets["far"] / far_frame["depth_file_path"])["Z"]
-                both = (z_unit > 0) & (z_far > 0)
-                np.testing.assert_allclose(z_far[both], z_unit[both], atol=2e-3)
+        unit_split, case_split = load_split(unit, split), load_split(case, split)
+        # The dataset camera's clipping scales with the scene (0.05 and 100 NeRF units): nothing
+        # is clipped at 1e-3 or 1e4, and the clip range is the same in the NeRF frame.
+        np.testing.assert_allclose(np.asarray(case_split["generator"]["camera"]["clip"]) * case_frame["scale"],
+                                   np.asarray(unit_split["generator"]["camera"]["clip"]) * unit_frame["scale"],
+                                   rtol=1e-6)
+        pixel = RIG_RADIUS / unit_split["fl_x"]  # a pixel's footprint at the object, NeRF units
+        for unit_view, case_view in zip(unit_split["frames"], case_split["frames"], strict=True):
+            # Poses: a camera's position is the protocol's, inverse-mapped into Blender's world and
+            # rounded to float32 there: <= e/2 per axis, both datasets together.  Rotations do not
+            # depend on scale or place (measured: equal); 1e-6 leaves room for Blender's float32
+            # decomposition of the matrix it is given.
+            a, b = np.asarray(unit_view["transform_matrix"]), np.asarray(case_view["transform_matrix"])
+            np.testing.assert_allclose(b[:3, :3], a[:3, :3], atol=1e-6)
+            np.testing.assert_allclose(b[:3, 3], a[:3, 3], atol=e / 2 + 1e-9)
+            np.testing.assert_array_equal(b[3], a[3])
+            # Images: relative to the object, the camera is off by <= sqrt(3)/2 e (its rounding) +
+            # sqrt(3)/2 e (the fitted centre) + sqrt(3) e (the fitted scale, over the <= target radius
+            # to the silhouette) and each surface by <= sqrt(3) e (its matrix, then Cycles' float32
+            # transform): 3 sqrt(3) e in all, a silhouette shift of s = 3 sqrt(3) e / pixel.  Only
+            # silhouette pixels (partly covered in the unit image, a fraction f of the image) change
+            # by more than noise, each by ~255 s levels at most: mean |difference| <= 0.5 + 255 s f.
+            with Image.open(unit / (unit_view["file_path"] + ".png")) as image:
+                unit_pixels = np.asarray(image).astype(float)
+            with Image.open(case / (case_view["file_path"] + ".png")) as image:
+                case_pixels = np.asarray(image).astype(float)
+            silhouette = ((unit_pixels[..., 3] > 0) & (unit_pixels[..., 3] < 255)).mean()
+            shift = 3 * math.sqrt(3) * e / pixel
+            assert np.abs(case_pixels - unit_pixels).mean() <= 0.5 + 255 * shift * silhouette, \
+                f"{name} {case_view['file_path']}: images must be nearly equal (8-bit levels)"
+            if split != "test":
+                continue
+            # Depth (NeRF units): a surface facing the camera moves along the ray by no more than
+            # the camera and the surface relative to each other, 3 sqrt(3) e as above, plus 1e-5 for
+            # Cycles' own float32 ray distances (~4.8e-7 a step at depths 4-6: measured <= 8 steps).
+            # At grazing angles and occluding edges a sub-pixel shift changes depth by more, so 95 %
+            # of the pixels both datasets hit must be within it.
+            z_unit = read_exr(unit / unit_view["depth_file_path"])["Z"]
+            z_case = read_exr(case / case_view["depth_file_path"])["Z"]
+            both = (z_unit > 0) & (z_case > 0)
+            assert both.sum() >= 0.95 * max((z_unit > 0).sum(), (z_case > 0).sum())
+            within = np.abs(z_case[both] - z_unit[both]) <= 3 * math.sqrt(3) * e + 1e-5
+            assert within.mean() >= 0.95, f"{name} {case_view['depth_file_path']}: depth differs"
+
+
+@pytest.fixture(scope="module")
+def placed_psnr(placed: Callable[[str], Path], tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], float]:
+    """name -> test PSNR of the fast preset trained PSNR_ITERS iterations (seed 0) on that dataset."""
+    runs = tmp_path_factory.mktemp("placed_runs")
+
+    @functools.cache
+    def psnr(name: str) -> float:
+        run = runs / name
+        run_python("-m", "nerf_backend", "train", str(placed(name)), "--preset", "fast", "--out", str(run),
+                   "--iters", str(PSNR_ITERS), "--seed", "0", "--no-progress")
+        run_python("-m", "nerf_backend", "eval", str(run), "--no-progress")
+        return json.loads((run / "metrics.json").read_text())["psnr"]
+
+    return psnr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", PLACED)
+def test_scaled_or_far_scene_trains_to_the_unit_scene_psnr(placed_psnr: Callable[[str], float], name: str) -> None:
+    """Issue 7's "same PSNR": the backend sees only the NeRF-frame dataset, so the same seed gives
+    the same training (a rerun on one dataset gives the same PSNR to the last bit).  "tiny", "huge"
+    and "far_huge" datasets differ from the unit one by ~1e-7 in their poses only, "far" by float32
+    steps at 1e5 (see the test above); see PSNR_MARGIN_DB for the measured differences.  Five
+    trainings of 200 iterations on 3 views at 24x24: 1-3 minutes each on 2 busy cores, hence slow.
+    """
+    assert placed_psnr(name) == pytest.approx(placed_psnr("unit"), abs=PSNR_MARGIN_DB)
 
 
 def test_eevee_filmic_scene_is_rendered_with_cycles_and_standard(scenes: Path, tmp_path: Path) -> None:

@@ -40,9 +40,25 @@ def test_look_at_follows_blender_camera_convention() -> None:
     np.testing.assert_allclose(matrix[3], [0, 0, 0, 1])
 
 
-def test_look_at_rejects_view_along_up() -> None:
-    with pytest.raises(ValueError):
-        tr.look_at((0.0, 0.0, 3.0))
+@pytest.mark.parametrize("height", [3.0, -3.0])
+def test_look_at_straight_down_or_up_at_the_pole(height: float) -> None:
+    """The up vector is degenerate there: the pose is still a proper rotation looking at the
+    target, and straight down it is the limit of views approaching at azimuth 0."""
+    pose = tr.look_at((0.0, 0.0, height))
+    rotation = [row[:3] for row in pose[:3]]
+    for i in range(3):
+        for j in range(3):
+            dot = sum(rotation[k][i] * rotation[k][j] for k in range(3))
+            assert dot == pytest.approx(1.0 if i == j else 0.0, abs=1e-12)
+    determinant = (rotation[0][0] * (rotation[1][1] * rotation[2][2] - rotation[1][2] * rotation[2][1])
+                   - rotation[0][1] * (rotation[1][0] * rotation[2][2] - rotation[1][2] * rotation[2][0])
+                   + rotation[0][2] * (rotation[1][0] * rotation[2][1] - rotation[1][1] * rotation[2][0]))
+    assert determinant == pytest.approx(1.0, abs=1e-12)
+    assert [pose[k][2] for k in range(3)] == pytest.approx([0.0, 0.0, 1.0 if height > 0 else -1.0])
+    if height > 0:
+        near_pole = tr.look_at((0.0, -1e-6, height))
+        for row, near_row in zip(pose, near_pole):
+            assert row == pytest.approx(near_row, abs=1e-5)
 
 
 def test_radius_constant() -> None:

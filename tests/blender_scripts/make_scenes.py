@@ -8,7 +8,9 @@ for a kind of real-world file the generator must handle (see tests/test_datasets
     missing_library.blend   a local cube plus an object linked from //library.blend, which is deleted
     empty_only.blend        an Empty and a light: nothing to render
     all_hidden.blend        meshes hidden from render (object flag, render-disabled collection)
-    unit.blend / far.blend  the same object at the origin at scale 1, and at (1e5, -2e5, 3e4) at scale 1000
+    unit.blend, tiny.blend, huge.blend, far.blend, far_huge.blend
+                            the same object placed and scaled as PLACEMENTS says (issue 7's extremes:
+                            scale 1e-3, scale 1e4, 1e5 units from the origin, and scale 1e4 far away)
     eevee_filmic.blend      EEVEE, Filmic with exposure and gamma, opaque film, stamps, two view layers,
                             a render-hidden helper far away, a viewport-hidden object that renders,
                             an excluded collection instanced by an Empty
@@ -30,8 +32,16 @@ MARKERS = [[0.0, 0.0, 0.0], [0.3, 0.35, 0.3], [-0.3, -0.3, -0.25]]
 MARKER_RADIUS = 0.03
 SPHERE_CENTRE = (3.0, -2.0, 1.0)
 SPHERE_RADIUS = 2.0
-FAR_OFFSET = (1.0e5, -2.0e5, 3.0e4)
-FAR_SCALE = 1000.0
+#: name -> (location, uniform scale) of the Empty that places the same object (see placed_object).
+#: "far" is 1e5 units from the origin (a unit vector (2, -2, 1) / 3 times 1e5) at scale 1, where
+#: Blender's float32 step is 2**-7 = 0.0078 units, 0.3 % of the object's bounding sphere (diameter 2.7).
+PLACEMENTS = {
+    "unit": ((0.0, 0.0, 0.0), 1.0),
+    "tiny": ((0.0, 0.0, 0.0), 1.0e-3),
+    "huge": ((0.0, 0.0, 0.0), 1.0e4),
+    "far": ((2.0e5 / 3.0, -2.0e5 / 3.0, 1.0e5 / 3.0), 1.0),
+    "far_huge": ((1.0e5, -2.0e5, 3.0e4), 1.0e4),
+}
 
 
 def reset() -> bpy.types.Scene:
@@ -149,7 +159,13 @@ def all_hidden(out_dir: str) -> None:
 
 
 def placed_object(out_dir: str, name: str, offset, scale: float) -> None:
-    """An asymmetric object (cube, sphere, cone) under an Empty that places and scales it."""
+    """An asymmetric object (cube, sphere, cone) under an Empty that places and scales it.
+
+    The lighting is scale- and place-invariant, so every placement renders the same image from
+    the same relative viewpoint: a uniform world background and a sun (direction only: W/m^2, no
+    fall-off).  A point or area light would not do: its irradiance falls off with distance squared,
+    so the object 1e4 times larger would need its light 1e8 times stronger.
+    """
     scene = reset()
     world(scene)
     sun(scene)
@@ -234,8 +250,8 @@ BUILDERS = {
     "missing_library": missing_library,
     "empty_only": empty_only,
     "all_hidden": all_hidden,
-    "unit": lambda out_dir: placed_object(out_dir, "unit.blend", (0.0, 0.0, 0.0), 1.0),
-    "far": lambda out_dir: placed_object(out_dir, "far.blend", FAR_OFFSET, FAR_SCALE),
+    **{name: (lambda out_dir, name=name: placed_object(out_dir, f"{name}.blend", *PLACEMENTS[name]))
+       for name in PLACEMENTS},
     "eevee_filmic": eevee_filmic,
     "markers": markers,
     "sphere": sphere,
@@ -250,7 +266,8 @@ def main() -> None:
         BUILDERS[name](out_dir)
     with open(os.path.join(out_dir, "scenes.json"), "w") as handle:
         json.dump({"markers": MARKERS, "sphere_centre": SPHERE_CENTRE, "sphere_radius": SPHERE_RADIUS,
-                   "far_offset": FAR_OFFSET, "far_scale": FAR_SCALE}, handle)
+                   "placements": {name: {"offset": offset, "scale": scale}
+                                  for name, (offset, scale) in PLACEMENTS.items()}}, handle)
 
 
 if __name__ == "__main__":
