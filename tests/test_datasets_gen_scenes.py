@@ -257,6 +257,7 @@ def test_scaled_or_far_scene_trains_to_the_unit_scene_psnr(placed_psnr: Callable
     steps at 1e5 (see the test above); see PSNR_MARGIN_DB for the measured differences.  Five
     trainings of 200 iterations on 3 views at 24x24: 1-3 minutes each on 2 busy cores, hence slow.
     """
+    print(f"{name}: {placed_psnr(name):.3f} dB, unit scene {placed_psnr('unit'):.3f} dB")
     assert placed_psnr(name) == pytest.approx(placed_psnr("unit"), abs=PSNR_MARGIN_DB)
 
 
