@@ -108,17 +108,17 @@ def _existing_files(run: RunFolder) -> list[Path]:
     return [p for p in run.path.iterdir() if p.name != LOCK_NAME] if run.path.is_dir() else []
 
 
-def _refuse_to_overwrite(run: RunFolder, options: TrainOptions) -> None:
+def _refuse_to_overwrite(run: RunFolder, options: TrainOptions, holding_lock: bool) -> None:
     """A non-empty folder is reused only when resuming or told to overwrite."""
     if not options.resume and not options.overwrite and _existing_files(run):
-        if run.in_use():
+        if not holding_lock and run.in_use():  # the probe would see our own lock
             raise RunError(f"{run.path}: {IN_USE}")
         raise RunError(f"{run.path}: run folder exists and is not empty; pass --resume to continue it or --overwrite to replace it")
 
 
 def _prepare_run_folder(run: RunFolder, options: TrainOptions) -> None:
     """Under the lock: check again, then empty the folder for a new run."""
-    _refuse_to_overwrite(run, options)
+    _refuse_to_overwrite(run, options, holding_lock=True)
     if options.resume:
         run.read_config()  # raises a clear error if this is not a run
         return
@@ -166,7 +166,7 @@ def train(options: TrainOptions) -> TrainSummary:
     val_split = _load_val(dataset) if options.validate else None
     scene_bounds = load_scene_bounds(dataset)
     run = RunFolder(options.run)
-    _refuse_to_overwrite(run, options)  # before the lock: a refused folder gains no lock file
+    _refuse_to_overwrite(run, options, holding_lock=False)  # before the lock: a refused folder gains no lock file
     run.acquire_lock()
     try:
         _prepare_run_folder(run, options)
