@@ -5,6 +5,7 @@ module), where the dataset is rendered in this process."""
 
 from __future__ import annotations
 
+import functools
 import json
 import subprocess
 from pathlib import Path
@@ -320,18 +321,30 @@ def render_active_camera_nerf(context) -> Path:
     return out / "nerf.png"
 
 
+def _reporting_backend_errors(execute):
+    """An operator's ``execute`` whose backend failure (the backend's own one-line error, or
+    a timeout) is shown as an error report and cancels, instead of a traceback."""
+
+    @functools.wraps(execute)
+    def wrapped(self, context):
+        try:
+            return execute(self, context)
+        except (RuntimeError, subprocess.TimeoutExpired) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+
+    return wrapped
+
+
 class NERF_OT_render_test_views(bpy.types.Operator):
     """Render the dataset's test views with the trained NeRF and load them as images"""
 
     bl_idname = "nerf.render_test_views"
     bl_label = "Render test views"
 
+    @_reporting_backend_errors
     def execute(self, context):
-        try:
-            run_backend(context, "render", str(run_dir(context)), "--split", "test", "--no-progress")
-        except (RuntimeError, subprocess.TimeoutExpired) as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+        run_backend(context, "render", str(run_dir(context)), "--split", "test", "--no-progress")
         renders = sorted((run_dir(context) / "renders" / "test").glob("r_*.png"), key=lambda p: int(p.stem[2:]))
         for path in renders:
             _show_image(f"NeRF test {path.stem}", path)
@@ -345,12 +358,9 @@ class NERF_OT_render_active_camera(bpy.types.Operator):
     bl_idname = "nerf.render_active_camera"
     bl_label = "Render active camera"
 
+    @_reporting_backend_errors
     def execute(self, context):
-        try:
-            path = render_active_camera_nerf(context)
-        except (RuntimeError, subprocess.TimeoutExpired) as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+        path = render_active_camera_nerf(context)
         _show_image("NeRF active camera", path)
         return {"FINISHED"}
 
@@ -384,15 +394,12 @@ class NERF_OT_compare(bpy.types.Operator):
     bl_idname = "nerf.compare"
     bl_label = "Compare with Cycles"
 
+    @_reporting_backend_errors
     def execute(self, context):
-        try:
-            _, size = _dataset_camera_settings(context)
-            nerf = render_active_camera_nerf(context)
-            cycles = render_active_camera_cycles(context, nerf.with_name("cycles.png"), size["w"], size["h"])
-            run_backend(context, "compare", "--reference", str(cycles), "--render", str(nerf), "--out", str(nerf.parent))
-        except (RuntimeError, subprocess.TimeoutExpired) as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+        _, size = _dataset_camera_settings(context)
+        nerf = render_active_camera_nerf(context)
+        cycles = render_active_camera_cycles(context, nerf.with_name("cycles.png"), size["w"], size["h"])
+        run_backend(context, "compare", "--reference", str(cycles), "--render", str(nerf), "--out", str(nerf.parent))
         result = json.loads((nerf.parent / "compare.json").read_text())
         s = settings(context)
         s.compare_psnr, s.compare_ssim = result["psnr"], result["ssim"]
@@ -410,12 +417,9 @@ class NERF_OT_open_report(bpy.types.Operator):
     bl_idname = "nerf.open_report"
     bl_label = "Open report"
 
+    @_reporting_backend_errors
     def execute(self, context):
-        try:
-            run_backend(context, "report", str(run_dir(context)))
-        except (RuntimeError, subprocess.TimeoutExpired) as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+        run_backend(context, "report", str(run_dir(context)))
         page = run_dir(context) / "report" / "index.html"
         bpy.ops.wm.url_open(url=page.as_uri())
         return {"FINISHED"}

@@ -275,13 +275,18 @@ def test_bad_dataset_one_line_and_no_run_folder(case_id, damage, file_name, prob
     assert not (tmp_path / "runs").exists(), "a failing train created its run folder"
 
 
-def test_bad_dataset_leaves_an_existing_run_untouched_even_with_overwrite(dataset_copy, tmp_path, capsys):
-    """--overwrite replaces a run only once the new dataset has been read whole."""
-    out = tmp_path / "run"
+def _existing_run(out: Path) -> dict:
+    """A run folder with a config and a render; returns its snapshot."""
     (out / "renders").mkdir(parents=True)
     (out / "config.json").write_text('{"preset": "preview"}')
     (out / "renders" / "r_0.png").write_bytes(b"old render")
-    before = _snapshot(out)
+    return _snapshot(out)
+
+
+def test_bad_dataset_leaves_an_existing_run_untouched_even_with_overwrite(dataset_copy, tmp_path, capsys):
+    """--overwrite replaces a run only once the new dataset has been read whole."""
+    out = tmp_path / "run"
+    before = _existing_run(out)
     _write_16_bit(dataset_copy)
     code = main(_train_args(dataset_copy, out, "--overwrite"))
     _assert_one_error_line(capsys.readouterr().err, "r_3.png", "16-bit")
@@ -289,26 +294,14 @@ def test_bad_dataset_leaves_an_existing_run_untouched_even_with_overwrite(datase
 
 
 def test_existing_run_folder_without_overwrite(tiny_demo_dataset, tmp_path, capsys):
+    """Refused before anything is touched: not even a lock file is added."""
     out = tmp_path / "run"
-    (out / "renders").mkdir(parents=True)
-    (out / "config.json").write_text('{"preset": "preview"}')
-    (out / "renders" / "r_0.png").write_bytes(b"old render")
-    before = _snapshot(out)
+    before = _existing_run(out)
     code = main(_train_args(tiny_demo_dataset, out))
     _assert_one_error_line(capsys.readouterr().err, str(out), "run folder exists and is not empty",
                            "--overwrite")
     assert code == 2
-    after = _snapshot(out)
-    assert {name: after[name] for name in before} == before, "a refused train changed the existing run"
-
-
-def test_existing_run_folder_without_overwrite_gains_no_lock_file(tiny_demo_dataset, tmp_path, capsys):
-    out = tmp_path / "run"
-    out.mkdir()
-    (out / "config.json").write_text('{"preset": "preview"}')
-    before = _snapshot(out)
-    assert main(_train_args(tiny_demo_dataset, out)) == 2
-    assert _snapshot(out) == before
+    assert _snapshot(out) == before, "a refused train changed the existing run"
 
 
 def test_debug_shows_the_traceback(dataset_copy, tmp_path):
