@@ -27,7 +27,6 @@ class TrainConfig:
     occupancy_warmup: int = 16  # steps before empty space is skipped at all
     occupancy_every: int = 16
     occupancy_alpha_threshold: float = 1e-4  # cells that cannot reach this alpha in one step are empty
-    colour_weight_threshold: float = 1e-4  # samples lighter than this get no colour evaluation
     # "protocol": near 2, far 6 for every ray (the reference loaders). "scene": each ray's
     # entry and exit of the scene's bounding box from scene_profile.json (falls back to
     # "protocol" for datasets without one).
@@ -71,6 +70,9 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, data: dict) -> "TrainConfig":
         values = dict(data)
+        # Runs before colour was skipped by transmittance (GridModel.OPAQUE_TRANSMITTANCE)
+        # stored a weight threshold; it no longer decides anything.
+        values.pop("colour_weight_threshold", None)
         values["field"] = FieldConfig(**{**values["field"], "skips": tuple(values["field"]["skips"])})
         values["sampling"] = SamplingConfig(**values["sampling"])
         values["grid"] = GridFieldConfig(**{**values["grid"],

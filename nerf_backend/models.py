@@ -63,6 +63,7 @@ class GridModel(nn.Module):
 
     # Inference marches this many steps at a time, and drops rays whose transmittance has
     # fallen below OPAQUE_TRANSMITTANCE: what they would still add is under 1e-4 of a pixel.
+    # Training evaluates no colour past that point either (see _colour_where_visible).
     INFERENCE_SEGMENT = 32
     OPAQUE_TRANSMITTANCE = 1e-4
     render_chunk = GRID_RENDER_CHUNK
@@ -136,10 +137,18 @@ class GridModel(nn.Module):
         values = self.field.density(inside) if volume is None else self.field.density_from_volume(volume, inside)
         return torch.zeros_like(deltas).view(-1).index_put((index,), values).view(deltas.shape)
 
-    def _colour_where_visible(self, positions: Tensor, directions: Tensor, weights: Tensor) -> Tensor:
-        """Colour ``[R, S, 3]``, evaluated only for samples whose weight shows."""
-        samples = weights.shape[1]
-        index = (weights.detach() > self.config.colour_weight_threshold).view(-1).nonzero().squeeze(1)
+    def _colour_where_visible(self, positions: Tensor, directions: Tensor, density: Tensor,
+                              transmittance: Tensor) -> Tensor:
+        """Colour ``[R, S, 3]``, evaluated only for samples with density that light still
+        reaches (transmittance above ``OPAQUE_TRANSMITTANCE``): everything skipped behind
+        that point adds less than ``OPAQUE_TRANSMITTANCE`` to the pixel, whatever its colour.
+
+        Why not skip samples of low *weight* instead: a young field's samples all weigh
+        little, so none would get a colour, each would count as black, and every bright
+        pixel would push density down: a large white object then trains to empty space."""
+        samples = density.shape[1]
+        visible = (density.detach() > 0) & (transmittance.detach() > self.OPAQUE_TRANSMITTANCE)
+        index = visible.view(-1).nonzero().squeeze(1)
         colour = self.field.colour(positions.view(-1, 3).index_select(0, index),
                                    directions.index_select(0, index // samples))
         return positions.new_zeros((positions.shape[0] * samples, 3)).index_put((index,), colour).view(positions.shape)
@@ -159,8 +168,9 @@ class GridModel(nn.Module):
         deltas = t_edges[:, 1:] - t_edges[:, :-1]
         t_mid = interval_midpoints(t_edges)
         positions = origins[:, None, :] + directions[:, None, :] * t_mid[..., None]
-        weights, _ = render_weights(self._occupied_density(positions, deltas, None), deltas)
-        rgb = self._colour_where_visible(positions, directions, weights)
+        density = self._occupied_density(positions, deltas, None)
+        weights, transmittance = render_weights(density, deltas)
+        rgb = self._colour_where_visible(positions, directions, density, transmittance)
         return [RenderOutput(
             rgb=composite_rgb(weights, rgb, background), depth=expected_depth(weights, t_mid),
             opacity=weights.sum(dim=-1), weights=weights, t_edges=t_edges,
@@ -200,7 +210,8 @@ class GridModel(nn.Module):
             segment_weights, segment_transmittance = render_weights(density, deltas)
             entering = transmittance[active]
             weights = segment_weights * entering[:, None]
-            colour = self._colour_where_visible(positions, ray_directions, weights)
+            colour = self._colour_where_visible(positions, ray_directions, density,
+                                                segment_transmittance * entering[:, None])
             rgb.index_add_(0, active, accumulate(weights, colour))
             depth.index_add_(0, active, expected_depth(weights, t_mid))
             leaving = entering * segment_transmittance[:, -1] * torch.exp(-density[:, -1] * deltas[:, -1])
