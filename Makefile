@@ -6,8 +6,12 @@ STAMP := $(VENV)/.installed
 
 # Where `make demo` writes (re-running it reuses what is already there).
 DEMO_DIR ?= out/demo
+# Where `make bench-suite` writes its datasets and its bench (re-running it resumes both).
+SUITE_DIR ?= out/suite
+BENCH_SUITE_DIR ?= out/bench_suite
+SUITE_SCENES ?= $(wildcard ../shared/scenes/*.blend)
 
-.PHONY: setup demo test test-slow extension clean-demo
+.PHONY: setup demo test test-slow bench-suite extension clean-demo
 
 setup: $(STAMP)
 
@@ -30,6 +34,16 @@ test: $(STAMP)
 # Heavier runs, kept runnable: longer trainings and full-size renders.
 test-slow: $(STAMP)
 	$(PY) -m pytest -m slow
+
+# The benchmark suite (long: well over an hour on 2 CPU cores; not part of `make test`): the trap
+# scenes, the demo and ../shared/scenes/*.blend rendered at 100x100 (100 train / 10 val / 50 test
+# views, 64 samples; --allow-missing for RobotExpressive's missing texture), then preview, fast
+# and auto trained 120 s each on every scene. Interrupted, it resumes where it stopped.
+bench-suite: $(STAMP)
+	$(PY) -m datasets_gen --suite $(SUITE_DIR) $(foreach scene,$(SUITE_SCENES),--suite-scene $(scene)) \
+		--allow-missing --resolution 100 --train-views 100 --val-views 10 --test-views 50 --samples 64
+	$(PY) -m nerf_backend bench --suite $(SUITE_DIR) --presets preview,fast,auto --budget-seconds 120 \
+		--out $(BENCH_SUITE_DIR)
 
 # The installable Blender extension (dist/nerf_from_blender-VERSION.zip).
 extension:

@@ -1,11 +1,13 @@
 """Command line of the dataset generator, shared by `python -m datasets_gen` and generate.py.
 
-    python -m datasets_gen (SCENE.blend | --demo) --out DIR [options]
+    python -m datasets_gen (SCENE.blend | --demo | --builtin NAME) --out DIR [options]
+    python -m datasets_gen --suite DIR [--suite-scene SCENE.blend ...] [options]
     python -m datasets_gen --merge DIR
     blender -b [SCENE.blend] --python datasets_gen/generate.py -- [SCENE.blend | --demo] --out DIR [options]
 
-Without SCENE.blend or --demo, `blender -b SCENE.blend --python ...` renders the file Blender
-opened.  Bad input exits with status 2 and a single line on stderr naming the file or flag.
+`--demo` is `--builtin demo` and `--demo --demo-variant diffuse` is `--builtin demo_diffuse`.
+Without SCENE.blend, --demo or --builtin, `blender -b SCENE.blend --python ...` renders the
+file Blender opened.  Bad input exits with status 2 and a single line on stderr naming the file or flag.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import argparse
 import sys
 from typing import Callable, NoReturn, Optional, Sequence
 
+from .builtin_scenes import BUILTIN_SCENES
 from .intrinsics import SENSOR_FITS, CameraSettings
 from .options import (
     COLOR_MANAGEMENT,
@@ -47,12 +50,23 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _OneLineParser(
         prog=PROG,
         description="Render a NeRF dataset (nerf_synthetic / Realistic Synthetic 360 protocol) "
-        "from a .blend file or the built-in demo scene. Defaults are the protocol's.",
+        "from a .blend file or a scene built in code. Defaults are the protocol's.",
     )
     parser.add_argument("scene", nargs="?", metavar="SCENE.blend", help="scene to render (or use --demo)")
-    parser.add_argument("--demo", action="store_true", help="render the built-in procedural demo scene")
+    parser.add_argument("--demo", action="store_true",
+                        help="render the built-in procedural demo scene (the same as --builtin demo)")
     parser.add_argument("--demo-variant", choices=DEMO_VARIANTS, default="standard",
-                        help="standard, or diffuse: every demo material a Diffuse BSDF (default: standard)")
+                        help="standard, or diffuse: every demo material a Diffuse BSDF (default: standard; "
+                        "--demo --demo-variant diffuse is --builtin demo_diffuse)")
+    scenes = "; ".join(f"{scene.name}: {scene.what}" for scene in BUILTIN_SCENES.values())
+    parser.add_argument("--builtin", choices=tuple(BUILTIN_SCENES), metavar="NAME",
+                        help="render a scene built in code: " + scenes.replace("%", "%%"))
+    parser.add_argument("--suite", metavar="DIR",
+                        help="render the benchmark suite into DIR/NAME: every built-in trap scene, the demo and "
+                        "each --suite-scene, with the other flags; complete datasets are kept, incomplete "
+                        "ones resumed (no SCENE, --demo, --builtin or --out)")
+    parser.add_argument("--suite-scene", action="append", default=[], metavar="SCENE.blend",
+                        help="with --suite: also render this .blend into DIR/STEM (repeatable)")
     parser.add_argument("--out", metavar="DIR", help="output folder (must be empty or new)")
     parser.add_argument("--merge", metavar="DIR",
                         help="join the shard JSON files in DIR into the dataset's JSON (no SCENE, no --out)")
@@ -163,11 +177,12 @@ def options_from_args(
             shard = Shard.parse(args.shard)
         except DatasetGenError as error:
             parser.error(str(error))
-    open_scene = args.scene is None and not args.demo and bool(blender_file)
+    open_scene = args.scene is None and not args.demo and args.builtin is None and bool(blender_file)
     options = GeneratorOptions(
         out_dir=args.out or "",
         demo=args.demo,
         demo_variant=args.demo_variant,
+        builtin=args.builtin,
         blend_path=blender_file if open_scene else args.scene,
         open_scene=open_scene,
         train_views=args.train_views,
@@ -199,15 +214,49 @@ def main(argv: Optional[Sequence[str]] = None, blender_file: str = "") -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.merge is not None:
-        extra = [flag for flag, value in (("SCENE.blend", args.scene), ("--demo", args.demo), ("--out", args.out))
+        extra = [flag for flag, value in (("SCENE.blend", args.scene), ("--demo", args.demo),
+                                          ("--builtin", args.builtin), ("--out", args.out), ("--suite", args.suite))
                  if value]
         if extra:
             parser.error(f"--merge DIR takes no {extra[0]}")
         return _guarded(lambda: _merge(args.merge), args.merge)
+    if args.suite is not None:
+        return _suite(args, parser)
+    if args.suite_scene:
+        parser.error("--suite-scene needs --suite DIR")
     options = options_from_args(args, parser, blender_file)
     from .generator import run
 
     return _guarded(lambda: run(options, progress=not args.no_progress), options.out_dir, options.check_only)
+
+
+def _suite(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    """--suite DIR: the trap scenes, the demo and each --suite-scene, each into DIR/NAME."""
+    from .builtin_scenes import SUITE_BUILTINS
+    from .suite import plan_suite, run_suite
+
+    extra = [flag for flag, value in (
+        ("SCENE.blend", args.scene), ("--demo", args.demo), ("--builtin", args.builtin), ("--out", args.out),
+        ("--check", args.check), ("--shard", args.shard), ("--demo-variant", args.demo_variant != "standard"),
+    ) if value]
+    if extra:
+        parser.error(f"--suite DIR takes no {extra[0]} (it renders {', '.join(SUITE_BUILTINS)} and each --suite-scene)")
+    # The shared flags are checked once, on the suite's first scene; each scene then gets its own.
+    first = argparse.Namespace(**{**vars(args), "builtin": SUITE_BUILTINS[0], "out": args.suite})
+    template = options_from_args(first, parser)
+    try:
+        plan = plan_suite(template, args.suite, args.suite_scene)
+    except DatasetGenError as error:
+        parser.error(str(error))
+    try:
+        return run_suite(plan, progress=not args.no_progress)
+    except DatasetGenError as error:
+        print(f"{PROG}: error: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted; run the same command again to resume the suite in {args.suite}",
+              file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 def _merge(out_dir: str) -> None:

@@ -14,6 +14,10 @@ depends on the view direction: a benchmark for the backend's view-independent mo
 Meshes are made with bmesh and the data API rather than operators, so the scene can be built
 into a scene that is not the active one and the result never depends on UI context.
 Everything is deterministic.
+
+The building helpers below (a protocol-ready scene, a plain world, a sun, objects, materials and
+meshes) are shared with the benchmark's trap scenes (`trap_scenes`); `builtin_scenes` is the
+registry of every scene built in code.
 """
 
 from __future__ import annotations
@@ -39,66 +43,81 @@ def build_demo_scene(name: str = DEMO_SCENE_NAME, variant: str = "standard") -> 
     if variant not in ("standard", "diffuse"):
         raise ValueError(f"unknown demo variant {variant!r}")
     diffuse = variant == "diffuse"
-    scene = bpy.data.scenes.new(name)
-    # Made for the protocol: a new scene's EEVEE, Filmic/AgX and opaque film would only be overridden.
-    scene.render.engine = "CYCLES"
-    scene.render.film_transparent = True
-    scene.view_settings.view_transform = "Standard"
-    scene.world = _demo_world(name)
+    scene = new_protocol_scene(name)
+    # A plain sky-blue environment: lights the scene softly from every direction.
+    scene.world = plain_world(name, (0.55, 0.60, 0.70), 0.6)
 
-    pedestal = _add_object(scene, "pedestal", _cylinder_mesh("pedestal", 0.85, 0.12, 96),
-                           (0.0, 0.0, PEDESTAL_TOP_Z - 0.06))
-    _assign(pedestal, _material("pedestal", (0.55, 0.50, 0.45), roughness=0.8, diffuse=diffuse))
+    pedestal = add_object(scene, "pedestal", cylinder_mesh("pedestal", 0.85, 0.12, 96),
+                          (0.0, 0.0, PEDESTAL_TOP_Z - 0.06))
+    assign(pedestal, make_material("pedestal", (0.55, 0.50, 0.45), roughness=0.8, diffuse=diffuse))
 
     sphere_radius = 0.32
-    sphere = _add_object(scene, "gold sphere", _sphere_mesh("gold sphere", sphere_radius),
-                         (0.38, -0.22, PEDESTAL_TOP_Z + sphere_radius))
-    _assign(sphere, _material("gold", (1.0, 0.72, 0.30), roughness=0.15, metallic=1.0, diffuse=diffuse))
+    sphere = add_object(scene, "gold sphere", sphere_mesh("gold sphere", sphere_radius),
+                        (0.38, -0.22, PEDESTAL_TOP_Z + sphere_radius))
+    assign(sphere, make_material("gold", (1.0, 0.72, 0.30), roughness=0.15, metallic=1.0, diffuse=diffuse))
 
     cube_size = 0.5
-    cube = _add_object(scene, "checker cube", _cube_mesh("checker cube", cube_size),
-                       (-0.38, 0.18, PEDESTAL_TOP_Z + cube_size / 2.0), rotation_z_deg=30.0)
-    _assign(cube, _textured_material("checker", "ShaderNodeTexChecker", (0.08, 0.22, 0.80),
-                                     (0.92, 0.92, 0.92), scale=4.0, diffuse=diffuse))
+    cube = add_object(scene, "checker cube", cube_mesh("checker cube", cube_size),
+                      (-0.38, 0.18, PEDESTAL_TOP_Z + cube_size / 2.0), rotation_z_deg=30.0)
+    assign(cube, textured_material("checker", "ShaderNodeTexChecker", (0.08, 0.22, 0.80),
+                                    (0.92, 0.92, 0.92), scale=4.0, diffuse=diffuse))
 
     cone_height = 0.45
-    cone = _add_object(scene, "brick cone", _cone_mesh("brick cone", 0.22, cone_height, 64),
-                       (-0.22, -0.48, PEDESTAL_TOP_Z + cone_height / 2.0))
-    _assign(cone, _textured_material("brick", "ShaderNodeTexBrick", (0.70, 0.22, 0.08),
-                                     (0.95, 0.55, 0.20), scale=6.0, diffuse=diffuse))
+    cone = add_object(scene, "brick cone", cone_mesh("brick cone", 0.22, cone_height, 64),
+                      (-0.22, -0.48, PEDESTAL_TOP_Z + cone_height / 2.0))
+    assign(cone, textured_material("brick", "ShaderNodeTexBrick", (0.70, 0.22, 0.08),
+                                    (0.95, 0.55, 0.20), scale=6.0, diffuse=diffuse))
 
     rod_length = 0.95
     rod_xy = (0.12, 0.38)
-    rod = _add_object(scene, "thin rod", _cylinder_mesh("thin rod", 0.025, rod_length, 24),
-                      (rod_xy[0], rod_xy[1], PEDESTAL_TOP_Z + rod_length / 2.0))
-    _assign(rod, _material("rod", (0.60, 0.05, 0.05), roughness=0.4, diffuse=diffuse))
+    rod = add_object(scene, "thin rod", cylinder_mesh("thin rod", 0.025, rod_length, 24),
+                     (rod_xy[0], rod_xy[1], PEDESTAL_TOP_Z + rod_length / 2.0))
+    assign(rod, make_material("rod", (0.60, 0.05, 0.05), roughness=0.4, diffuse=diffuse))
 
     ring_major = 0.25
-    ring = _add_object(scene, "thin ring", _torus_mesh("thin ring", ring_major, 0.03),
-                       (rod_xy[0], rod_xy[1], PEDESTAL_TOP_Z + rod_length + ring_major),
-                       rotation_x_deg=90.0, rotation_z_deg=45.0)
-    _assign(ring, _material("ring", (0.10, 0.60, 0.25), roughness=0.3, diffuse=diffuse))
+    ring = add_object(scene, "thin ring", torus_mesh("thin ring", ring_major, 0.03),
+                      (rod_xy[0], rod_xy[1], PEDESTAL_TOP_Z + rod_length + ring_major),
+                      rotation_x_deg=90.0, rotation_z_deg=45.0)
+    assign(ring, make_material("ring", (0.10, 0.60, 0.25), roughness=0.3, diffuse=diffuse))
 
-    sun_data = bpy.data.lights.new(f"{name} sun", type="SUN")
-    sun_data.energy = 3.0
-    sun_data.angle = math.radians(5.0)
-    _add_object(scene, "sun", sun_data, (0.0, 0.0, 3.0), rotation_x_deg=40.0, rotation_z_deg=30.0)
+    add_sun(scene, name, energy=3.0, rotation_x_deg=40.0, rotation_z_deg=30.0)
 
     scene.view_layers[0].update()
     return scene
 
 
-def _demo_world(name: str) -> "bpy.types.World":
-    """A plain sky-blue environment: lights the scene softly from every direction."""
+def new_protocol_scene(name: str) -> "bpy.types.Scene":
+    """A new, empty scene made for the protocol: a new scene's EEVEE, Filmic/AgX and opaque
+    film would only be overridden."""
+    scene = bpy.data.scenes.new(name)
+    scene.render.engine = "CYCLES"
+    scene.render.film_transparent = True
+    scene.view_settings.view_transform = "Standard"
+    return scene
+
+
+def plain_world(name: str, colour: Sequence[float], strength: float) -> "bpy.types.World":
+    """A uniform environment of one colour (`NAME world`): soft light from every direction
+    (the film is transparent, so it is never seen directly)."""
     world = bpy.data.worlds.new(f"{name} world")
     tree = node_tree_of(world)
     background = next(node for node in tree.nodes if node.type == "BACKGROUND")
-    background.inputs["Color"].default_value = (0.55, 0.60, 0.70, 1.0)
-    background.inputs["Strength"].default_value = 0.6
+    background.inputs["Color"].default_value = (*colour, 1.0)
+    background.inputs["Strength"].default_value = strength
     return world
 
 
-def _add_object(
+def add_sun(scene: "bpy.types.Scene", name: str, energy: float, rotation_x_deg: float, rotation_z_deg: float,
+            angle_deg: float = 5.0) -> "bpy.types.Object":
+    """A sun light (`NAME sun`, object `sun`) for shadows: direction from the two rotations."""
+    sun_data = bpy.data.lights.new(f"{name} sun", type="SUN")
+    sun_data.energy = energy
+    sun_data.angle = math.radians(angle_deg)
+    return add_object(scene, "sun", sun_data, (0.0, 0.0, 3.0), rotation_x_deg=rotation_x_deg,
+                      rotation_z_deg=rotation_z_deg)
+
+
+def add_object(
     scene: "bpy.types.Scene",
     name: str,
     data: Optional["bpy.types.ID"],
@@ -113,14 +132,16 @@ def _add_object(
     return obj
 
 
-def _assign(obj: "bpy.types.Object", material: "bpy.types.Material") -> None:
+def assign(obj: "bpy.types.Object", material: "bpy.types.Material") -> None:
     obj.data.materials.append(material)
 
 
-def _material(
-    name: str, colour: Sequence[float], roughness: float, metallic: float = 0.0, diffuse: bool = False
+def make_material(
+    name: str, colour: Sequence[float], roughness: float, metallic: float = 0.0, diffuse: bool = False,
+    transmission: float = 0.0, ior: Optional[float] = None,
 ) -> "bpy.types.Material":
-    """A Principled material, or with `diffuse` a lone Diffuse BSDF of the same colour."""
+    """A Principled material, or with `diffuse` a lone Diffuse BSDF of the same colour.
+    `transmission` 1 with an `ior` makes glass."""
     material = bpy.data.materials.new(name)
     if diffuse:
         set_node_input(diffuse_bsdf(material), ["Color"], (*colour, 1.0))
@@ -129,10 +150,14 @@ def _material(
     set_node_input(bsdf, ["Base Color"], (*colour, 1.0))
     set_node_input(bsdf, ["Roughness"], roughness)
     set_node_input(bsdf, ["Metallic"], metallic)
+    if transmission:
+        set_node_input(bsdf, ["Transmission Weight", "Transmission"], transmission)
+    if ior is not None:
+        set_node_input(bsdf, ["IOR"], ior)
     return material
 
 
-def _textured_material(
+def textured_material(
     name: str,
     texture_node_type: str,
     colour_a: Sequence[float],
@@ -141,7 +166,7 @@ def _textured_material(
     diffuse: bool = False,
 ) -> "bpy.types.Material":
     """A material whose base colour is a procedural texture on Generated coordinates."""
-    material = _material(name, colour_a, roughness=0.6, diffuse=diffuse)
+    material = make_material(name, colour_a, roughness=0.6, diffuse=diffuse)
     tree = node_tree_of(material)
     coordinates = tree.nodes.new("ShaderNodeTexCoord")
     texture = tree.nodes.new(texture_node_type)
@@ -154,7 +179,7 @@ def _textured_material(
     return material
 
 
-def _mesh_from_bmesh(name: str, bm: "bmesh.types.BMesh", smooth: bool) -> "bpy.types.Mesh":
+def mesh_from_bmesh(name: str, bm: "bmesh.types.BMesh", smooth: bool) -> "bpy.types.Mesh":
     mesh = bpy.data.meshes.new(name)
     bm.to_mesh(mesh)
     bm.free()
@@ -163,39 +188,39 @@ def _mesh_from_bmesh(name: str, bm: "bmesh.types.BMesh", smooth: bool) -> "bpy.t
     return mesh
 
 
-def _sphere_mesh(name: str, radius: float) -> "bpy.types.Mesh":
+def sphere_mesh(name: str, radius: float) -> "bpy.types.Mesh":
     bm = bmesh.new()
     bmesh.ops.create_uvsphere(bm, u_segments=64, v_segments=32, radius=radius)
-    return _mesh_from_bmesh(name, bm, smooth=True)
+    return mesh_from_bmesh(name, bm, smooth=True)
 
 
-def _cube_mesh(name: str, size: float) -> "bpy.types.Mesh":
+def cube_mesh(name: str, size: float) -> "bpy.types.Mesh":
     bm = bmesh.new()
     bmesh.ops.create_cube(bm, size=size)
-    return _mesh_from_bmesh(name, bm, smooth=False)
+    return mesh_from_bmesh(name, bm, smooth=False)
 
 
-def _cone_mesh(name: str, radius: float, height: float, segments: int) -> "bpy.types.Mesh":
+def cone_mesh(name: str, radius: float, height: float, segments: int) -> "bpy.types.Mesh":
     bm = bmesh.new()
     bmesh.ops.create_cone(bm, cap_ends=True, cap_tris=False, segments=segments,
                           radius1=radius, radius2=0.0, depth=height)
-    return _mesh_from_bmesh(name, bm, smooth=False)
+    return mesh_from_bmesh(name, bm, smooth=False)
 
 
-def _cylinder_mesh(name: str, radius: float, height: float, segments: int) -> "bpy.types.Mesh":
+def cylinder_mesh(name: str, radius: float, height: float, segments: int) -> "bpy.types.Mesh":
     """A capped cylinder centred on its origin, smooth sides and flat caps."""
     bm = bmesh.new()
     bmesh.ops.create_cone(bm, cap_ends=True, cap_tris=False, segments=segments,
                           radius1=radius, radius2=radius, depth=height)
-    mesh = _mesh_from_bmesh(name, bm, smooth=False)
+    mesh = mesh_from_bmesh(name, bm, smooth=False)
     side = [abs(polygon.normal.z) < 0.5 for polygon in mesh.polygons]
     mesh.polygons.foreach_set("use_smooth", side)
     mesh.update()
     return mesh
 
 
-def _torus_mesh(name: str, major_radius: float, minor_radius: float,
-                major_segments: int = 64, minor_segments: int = 16) -> "bpy.types.Mesh":
+def torus_mesh(name: str, major_radius: float, minor_radius: float,
+               major_segments: int = 64, minor_segments: int = 16) -> "bpy.types.Mesh":
     """A torus in the XY plane around the origin (bmesh has no torus operator)."""
     vertices = []
     for i in range(major_segments):

@@ -1,4 +1,4 @@
-"""Render a nerf_synthetic-style dataset from the demo scene, a .blend or the open scene.
+"""Render a nerf_synthetic-style dataset from a built-in scene, a .blend or the open scene.
 
 Both command lines (`python -m datasets_gen`, `blender -b --python datasets_gen/generate.py`)
 and the add-on call `run` (the add-on through `generate_dataset`).  Order of work: validate,
@@ -61,6 +61,7 @@ def generate_dataset(
     *,
     demo: bool = False,
     demo_variant: str = "standard",
+    builtin: Optional[str] = None,
     blend_path: Optional[str] = None,
     scene: Any = None,
     train_views: int = 100,
@@ -93,12 +94,12 @@ def generate_dataset(
 ) -> dict[str, Any]:
     """Render a dataset into `out_dir`; return the scene profile it wrote.
 
-    Give exactly one of `demo=True`, `blend_path`, or `scene` (a bpy Scene already open in this
-    session, e.g. the add-on's `bpy.context.scene`: rendered without opening any file, and every
-    setting changed for the render is restored afterwards).  Opening `blend_path` replaces the
-    current session's file; the demo adds a scene to it.  `check_only` runs the scene checks
-    and returns the profile without rendering or writing anything.  Raises DatasetGenError for
-    bad input.
+    Give exactly one of `demo=True`, `builtin` (a name in builtin_scenes), `blend_path`, or
+    `scene` (a bpy Scene already open in this session, e.g. the add-on's `bpy.context.scene`:
+    rendered without opening any file, and every setting changed for the render is restored
+    afterwards).  Opening `blend_path` replaces the current session's file; a built-in scene is
+    added to it.  `check_only` runs the scene checks and returns the profile without rendering
+    or writing anything.  Raises DatasetGenError for bad input.
     """
     if scene is not None and blend_path is not None:
         raise DatasetGenError("give blend_path or scene (the open scene), not both")
@@ -106,6 +107,7 @@ def generate_dataset(
         out_dir=out_dir,
         demo=demo,
         demo_variant=demo_variant,
+        builtin=builtin,
         blend_path=blend_path,
         open_scene=scene is not None,
         train_views=train_views,
@@ -196,7 +198,7 @@ def _run_in_blender(
         print(json.dumps(survey.profile, indent=2))
         return survey.profile
 
-    settings = _settings_record(options, survey.camera, survey.source)
+    settings = settings_record(options, survey.camera, survey.source)
     _require_consistent_folder(out_dir, options, settings, bpy.app.version_string)
     depth_splits = [split for split in SPLITS if options.wants_depth_normals(split) and options.views(split)]
     device = configure_render(
@@ -266,8 +268,9 @@ def _survey(options: GeneratorOptions, scene: Any, journal: Any) -> _Survey:
     materials = [classify_material(describe_material(name, users)).record()
                  for name, users in sorted(geometry.materials.items())]
     low, high = frame.bounds(geometry.low, geometry.high)  # type: ignore[arg-type]
+    builtin = {"builtin": options.builtin_name} if options.builtin_name is not None else {}
     profile = scene_profile(
-        source["source"], low, high,
+        source["source"], low, high, **builtin,
         bounds_frame="NeRF frame: p_nerf = scale * p_blender + translation (world_to_nerf)",
         world_to_nerf=frame_record,
         bounding_sphere={"centre": list(frame.apply(geometry.centre)), "radius": geometry.radius * frame.scale},
@@ -341,10 +344,11 @@ def _load_scene(options: GeneratorOptions, scene: Any) -> tuple[Any, dict[str, A
 
     from .scene_facts import blend_identity
 
-    if options.demo:
-        from .demo_scene import build_demo_scene
+    if options.builtin_name is not None:
+        from .builtin_scenes import builtin_scene
 
-        return build_demo_scene(variant=options.demo_variant), {"source": "demo", "demo_variant": options.demo_variant}
+        builtin = builtin_scene(options.builtin_name)
+        return builtin.build(), builtin.source_record()
     if options.open_scene:
         scene = scene if scene is not None else bpy.context.scene
         path = bpy.data.filepath
@@ -382,7 +386,8 @@ def _world_to_nerf(
                 f"--frame blender: the geometry (bounding sphere radius {geometry.radius:.4g} around a centre "
                 f"{centre_distance:.4g} from the origin) may not fit the protocol's views; --frame fit frames it"
             )
-        return IDENTITY, IDENTITY.record(DEMO_RULE if options.demo and options.frame is None else BLENDER_RULE,
+        modelled = options.builtin_name is not None and options.frame is None  # the demo's own frame
+        return IDENTITY, IDENTITY.record(DEMO_RULE if modelled else BLENDER_RULE,
                                          sphere_blender=sphere)
     try:
         similarity = fit_similarity(geometry.centre, geometry.radius, target)
@@ -441,7 +446,7 @@ def _require_consistent_folder(out_dir: str, options: GeneratorOptions, settings
             require_same_settings(previous, settings, os.path.join(out_dir, name))
 
 
-def _settings_record(options: GeneratorOptions, camera: CameraSettings, source: dict[str, Any]) -> dict[str, Any]:
+def settings_record(options: GeneratorOptions, camera: CameraSettings, source: dict[str, Any]) -> dict[str, Any]:
     """Everything that decides the dataset's content: equal settings give the same dataset."""
     return {
         "scene": dict(source),

@@ -12,6 +12,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
+from .builtin_scenes import BUILTIN_SCENES, demo_builtin
 from .frame_fit import view_half_angle
 from .intrinsics import SENSOR_FITS, CameraSettings
 
@@ -57,16 +58,19 @@ class Shard:
 class GeneratorOptions:
     """Settings of one run; defaults are the nerf_synthetic protocol's.
 
-    Exactly one scene source: `demo`, `blend_path`, or `open_scene` (the scene already open in
-    this Blender session: the add-on).  `blend_path` with `open_scene` means that file is already
-    open as loaded from disk (`blender -b SCENE.blend --python generate.py`): it is not reopened.
-    `frame` None means "fit" for a user's scene and the identity for the demo (modelled in the
-    protocol frame).
+    Exactly one scene source: `builtin` (a scene built in code, see builtin_scenes), `demo`
+    (shorthand for the builtin "demo", or "demo_diffuse" with `demo_variant` "diffuse"),
+    `blend_path`, or `open_scene` (the scene already open in this Blender session: the add-on).
+    `blend_path` with `open_scene` means that file is already open as loaded from disk
+    (`blender -b SCENE.blend --python generate.py`): it is not reopened.
+    `frame` None means "fit" for a user's scene and the built-in scene's own default for a
+    built-in one (the identity for the demo, modelled in the protocol frame).
     """
 
     out_dir: str
     demo: bool = False
     demo_variant: str = "standard"
+    builtin: Optional[str] = None
     blend_path: Optional[str] = None
     open_scene: bool = False
     train_views: int = 100
@@ -92,20 +96,30 @@ class GeneratorOptions:
         return {"train": self.train_views, "val": self.val_views, "test": self.test_views}[split]
 
     @property
+    def builtin_name(self) -> Optional[str]:
+        """The built-in scene rendered (`--demo` is the builtin "demo" or "demo_diffuse"), or None."""
+        if self.demo:
+            return demo_builtin(self.demo_variant) if self.demo_variant in DEMO_VARIANTS else None
+        return self.builtin
+
+    @property
     def frame_mode(self) -> str:
         """"fit" or "blender", with the default resolved."""
         if self.frame is not None:
             return self.frame
-        return "blender" if self.demo else "fit"
+        name = self.builtin_name
+        return BUILTIN_SCENES[name].frame if name in BUILTIN_SCENES else "fit"
 
     def wants_depth_normals(self, split: str) -> bool:
         return self.depth_normals == "all" or (self.depth_normals == "test" and split == "test")
 
     def validate(self) -> "GeneratorOptions":
         """Raise DatasetGenError naming the offending option; return self when all is well."""
-        sources = int(self.demo) + int(self.blend_path is not None or self.open_scene)
+        sources = int(self.demo) + int(self.builtin is not None) + int(self.blend_path is not None or self.open_scene)
         if sources != 1:
-            raise DatasetGenError("give exactly one of SCENE.blend or --demo")
+            raise DatasetGenError("give exactly one of SCENE.blend, --demo or --builtin NAME")
+        if self.builtin is not None:
+            _choice(self.builtin, tuple(BUILTIN_SCENES), "--builtin")
         if self.blend_path is not None:
             if not os.path.isfile(self.blend_path):
                 raise DatasetGenError(f"scene file not found: {self.blend_path}")

@@ -11,7 +11,10 @@ run's ``config.json``:
   (Nyquist for the training images), so its resolution is the box size over that footprint;
 - samples: one march step per grid cell covers the depth range at that same detail;
 - background: a transparent film gives an alpha channel, so training composites over
-  random colours and the alpha decides what is background.
+  random colours and the alpha decides what is background;
+- empty space: where the dataset carries Blender's own geometry as an occupancy prior,
+  the occupancy grid starts from it and never marks what it leaves out, so empty space is
+  skipped from the first step and nothing can grow there.
 """
 
 from __future__ import annotations
@@ -25,6 +28,8 @@ from .config import TrainConfig
 from .dataset import DatasetSplit, SceneBounds
 
 MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
+# Which of the prior's fills auto uses (measured with bench: see the README).
+PRIOR_KIND = "surface"
 
 
 def pixel_footprint(split: DatasetSplit, box: SceneBounds) -> float:
@@ -68,9 +73,17 @@ def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profil
         "reason": ("the images have an alpha channel with transparent pixels (transparent film)" if transparent
                    else "every pixel is opaque, so there is no background to separate"),
     }
+    prior = PRIOR_KIND if profile is not None and isinstance(profile.get("occupancy_prior"), dict) else "none"
+    decisions["occupancy_prior"] = {
+        "value": prior,
+        "reason": (f"the dataset holds Blender's geometry voxelised ({PRIOR_KIND}): empty space is skipped "
+                   "from the first step" if prior != "none" else
+                   "the dataset has no occupancy prior: empty space is found from the field's own density"),
+    }
     grid = dataclasses.replace(base.grid, resolution=resolution, initial_resolution=initial,
                                upsample_iterations=schedule, view_dependent=view_dependent)
-    config = dataclasses.replace(base, preset="auto", grid=grid, grid_step_ratio=1.0, random_background=transparent)
+    config = dataclasses.replace(base, preset="auto", grid=grid, grid_step_ratio=1.0, random_background=transparent,
+                                 occupancy_prior=prior)
     diagonal = math.sqrt(sum((hi - lo) ** 2 for lo, hi in zip(box.box_min, box.box_max)))
     decisions["samples"] = {
         "value": math.ceil(diagonal / (extent / (resolution - 1))) + 1,

@@ -10,6 +10,9 @@ from pathlib import Path
 
 from .errors import NerfError
 
+# `train`'s exit status when the run ended on a model collapsed to the blank image (bad input: 2).
+EXIT_COLLAPSED = 3
+
 
 def _positive_int(text: str) -> int:
     value = int(text)
@@ -49,8 +52,13 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
     train.add_argument("--no-progress", action="store_true", help="no progress bar")
 
-    bench = sub.add_parser("bench", help="measure the speed/accuracy trade of presets on one dataset")
-    bench.add_argument("dataset", type=Path)
+    bench = sub.add_parser("bench", help="measure the speed/accuracy trade of presets on one dataset, or on "
+                                         "every dataset of a suite (--suite)")
+    bench.add_argument("dataset", type=Path, nargs="?", help="the dataset (or give --suite)")
+    bench.add_argument("--suite", type=Path, nargs="+", default=None, metavar="PATH",
+                       help="bench every dataset of these folders (each subfolder with a transforms_train.json; a "
+                            "dataset folder counts as itself) into OUT/NAME, and write OUT/summary.{json,md,png}; "
+                            "finished scenes are kept, unfinished ones benched again")
     bench.add_argument("--presets", default=None,
                        help="comma-separated presets or variants NAME=PRESET+KEY=VALUE+... "
                             "(default: preview,fast,auto,paper)")
@@ -140,6 +148,10 @@ def _run(args: argparse.Namespace) -> int:
         val = f", validation PSNR {summary.val_psnr:.2f} dB" if summary.val_psnr is not None else ""
         print(f"trained {summary.iteration} iterations in {summary.train_seconds:.1f} s "
               f"(stopped: {summary.stop_reason}){val}; run: {args.out}")
+        if summary.collapse is not None:
+            print(f"error: training failed: the model collapsed to the blank image "
+                  f"({summary.collapse.describe()}); see {args.out / 'events.jsonl'}", file=sys.stderr)
+            return EXIT_COLLAPSED
         return 0
 
     if args.command == "bench":
@@ -147,6 +159,18 @@ def _run(args: argparse.Namespace) -> int:
 
         names = (args.presets or ("" if args.ablations else DEFAULT_PRESETS)).split(",")
         names = [n for n in names if n] + (ablation_variants(args.ablations) if args.ablations else [])
+        if (args.dataset is None) == (args.suite is None):
+            raise NerfError("bench: give a DATASET or --suite PATH ... (not both)")
+        if args.suite is not None:
+            from .bench import run_suite
+
+            run_suite(args.suite, [Variant.parse(n) for n in names], args.out, args.budget_seconds, args.iters,
+                      points=args.points, curve_views=args.curve_views, seed=args.seed, device=args.device,
+                      overwrite=args.overwrite)
+            print((args.out / "summary.md").read_text(), end="")
+            print(f"written {args.out / 'summary.json'}, {args.out / 'summary.md'}, {args.out / 'summary.png'} "
+                  f"and each scene's bench in {args.out}/NAME")
+            return 0
         report = run_bench(args.dataset, [Variant.parse(n) for n in names], args.out, args.budget_seconds,
                            args.iters, points=args.points, curve_views=args.curve_views, seed=args.seed,
                            device=args.device, overwrite=args.overwrite)

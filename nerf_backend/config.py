@@ -27,6 +27,10 @@ class TrainConfig:
     occupancy_warmup: int = 16  # steps before empty space is skipped at all
     occupancy_every: int = 16
     occupancy_alpha_threshold: float = 1e-4  # cells that cannot reach this alpha in one step are empty
+    # Grid models: start the occupancy grid from the dataset's occupancy prior (Blender's
+    # geometry, occupancy_prior.npz) and never mark a cell it leaves out: "surface" (cells
+    # the surfaces pass through, with a margin), "solid" (those and what they enclose) or "none".
+    occupancy_prior: str = "none"
     # "protocol": near 2, far 6 for every ray (the reference loaders). "scene": each ray's
     # entry and exit of the scene's bounding box from scene_profile.json (falls back to
     # "protocol" for datasets without one).
@@ -57,12 +61,22 @@ class TrainConfig:
     # white: the alpha then decides, and "all background" stops being a minimum.
     random_background: bool = False
     validate_every: int = 2500
+    # The collapse guard (collapse_guard.py): from this many steps on, a validation within
+    # collapse_margin_db of the blank white image's PSNR on the same views is a collapse.
+    collapse_check_after: int = 250
+    collapse_margin_db: float = 1.0
     checkpoint_every: int = 1000
     log_every: int = 10
 
-    def learning_rate_at(self, step: int) -> float:
+    def learning_rate_decay(self, step: int) -> float:
+        """The factor every learning rate is multiplied by at ``step`` (1 at the start)."""
+        if self.learning_rate <= 0:  # a frozen model (learning_rate 0) has nothing to decay
+            return 1.0
         ratio = self.final_learning_rate / self.learning_rate
-        return self.learning_rate * max(ratio ** (step / self.lr_decay_steps), self.learning_rate_floor)
+        return max(ratio ** (step / self.lr_decay_steps), self.learning_rate_floor)
+
+    def learning_rate_at(self, step: int) -> float:
+        return self.learning_rate * self.learning_rate_decay(step)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

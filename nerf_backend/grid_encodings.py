@@ -5,9 +5,11 @@ A feature volume ``F(x, y, z) ∈ R^C`` is stored as three planes and three line
     F(x, y, z) = P_xy(x, y) ⊙ L_z(z)  ⊕  P_xz(x, z) ⊙ L_y(y)  ⊕  P_yz(y, z) ⊙ L_x(x)
 
 (⊙: per-channel product of a bilinear and a linear interpolation; ⊕: concatenation, so
-``out_dims = 3 · C``). With N cells a side that is ``3·C·(N² + N)`` parameters instead of
+``out_dims = 3 · C``). With N vertices a side that is ``3·C·(N² + N)`` parameters instead of
 ``C·N³``: about 3 M for C = 64, N = 128 — small enough that a dense Adam step on the CPU
-costs little, which is what decides speed on the machines this project measures on.
+costs little, which is what decides speed on the machines this project measures on. Each
+axis has its own vertex count ``(Nx, Ny, Nz)``, so a flat or long box gets cubic cells
+without spending vertices along its short sides.
 
 Each component is bilinear × linear, i.e. trilinear within a grid cell, so a linear map of
 the features is trilinear too and its maximum over a cell sits at one of the cell's
@@ -27,23 +29,29 @@ from torch import Tensor, nn
 _MODES = (((0, 1), 2), ((0, 2), 1), ((1, 2), 0))
 
 
+Vertices = tuple[int, int, int]
+
+
 class VectorMatrixGrid(nn.Module):
     """``forward(x [P, 3] in [-1, 1]) -> features [P, 3·channels]``.
 
+    ``vertices``: grid vertices along x, y and z (an int: the same on every axis).
+
     Example:
-        >>> grid = VectorMatrixGrid(channels=4, resolution=16)
+        >>> grid = VectorMatrixGrid(channels=4, vertices=(16, 16, 8))
         >>> grid(torch.zeros(10, 3)).shape
         torch.Size([10, 12])
     """
 
-    def __init__(self, channels: int, resolution: int, init_scale: float = 0.1) -> None:
+    def __init__(self, channels: int, vertices: Vertices | int, init_scale: float = 0.1) -> None:
         super().__init__()
         self.channels = channels
-        self.resolution = resolution
+        self.vertices: Vertices = _as_vertices(vertices)
+        n = self.vertices
         self.planes = nn.ParameterList(
-            [nn.Parameter(init_scale * torch.randn(1, channels, resolution, resolution)) for _ in _MODES])
+            [nn.Parameter(init_scale * torch.randn(1, channels, n[a], n[b])) for (a, b), _ in _MODES])
         self.lines = nn.ParameterList(
-            [nn.Parameter(init_scale * torch.randn(1, channels, resolution, 1)) for _ in _MODES])
+            [nn.Parameter(init_scale * torch.randn(1, channels, n[c], 1)) for _, c in _MODES])
 
     @property
     def out_dims(self) -> int:
@@ -62,29 +70,37 @@ class VectorMatrixGrid(nn.Module):
         return torch.cat(outputs, dim=0).T
 
     @torch.no_grad()
-    def resize(self, resolution: int) -> None:
-        """Resample every plane and line to ``resolution`` vertices a side (coarse-to-fine
-        training): the represented volume is unchanged up to interpolation."""
+    def resize(self, vertices: Vertices | int) -> None:
+        """Resample every plane and line to ``vertices`` (coarse-to-fine training): the
+        represented volume is unchanged up to interpolation."""
+        n = self.vertices = _as_vertices(vertices)
         # New Parameter objects (not .data swaps): autograd keeps each parameter's shape.
-        for i, plane in enumerate(self.planes):
+        for i, ((a, b), c) in enumerate(_MODES):
             self.planes[i] = nn.Parameter(
-                F.interpolate(plane, size=(resolution, resolution), mode="bilinear", align_corners=True))
-        for i, line in enumerate(self.lines):
-            self.lines[i] = nn.Parameter(F.interpolate(line, size=(resolution, 1), mode="bilinear", align_corners=True))
-        self.resolution = resolution
+                F.interpolate(self.planes[i], size=(n[a], n[b]), mode="bilinear", align_corners=True))
+            self.lines[i] = nn.Parameter(
+                F.interpolate(self.lines[i], size=(n[c], 1), mode="bilinear", align_corners=True))
 
     @torch.no_grad()
     def dense_sum(self) -> Tensor:
-        """The sum of all features at the grid's vertices, ``[N, N, N]`` indexed (x, y, z),
-        without holding every channel's volume: each mode is one matrix product
-        ``[N², C] @ [C, N]``, so a 256³ grid needs 64 MB, not gigabytes."""
+        """The sum of all features at the grid's vertices, ``[Nx, Ny, Nz]``, without holding
+        every channel's volume: each mode is one matrix product ``[Na·Nb, C] @ [C, Nc]``, so a
+        256³ grid needs 64 MB, not gigabytes."""
         total = None
-        for (plane_axes, line_axis), plane, line in zip(_MODES, self.planes, self.lines):
-            n = self.resolution
-            p = plane[0].reshape(self.channels, n * n)  # [C, a·b]
+        n = self.vertices
+        for ((a, b), c), plane, line in zip(_MODES, self.planes, self.lines):
+            p = plane[0].reshape(self.channels, n[a] * n[b])  # [C, a·b]
             l = line[0, :, :, 0]  # [C, line]
-            full = (p.T @ l).view(n, n, n)  # [a, b, line]
-            order = list(plane_axes) + [line_axis]
+            full = (p.T @ l).view(n[a], n[b], n[c])
+            order = [a, b, c]
             full = full.permute(*[order.index(axis) for axis in range(3)])
             total = full if total is None else total + full
         return total
+
+
+def _as_vertices(vertices: Vertices | int) -> Vertices:
+    if isinstance(vertices, int):
+        return (vertices, vertices, vertices)
+    if len(vertices) != 3 or min(vertices) < 2:
+        raise ValueError(f"a grid needs at least 2 vertices on each of 3 axes, got {vertices}")
+    return (int(vertices[0]), int(vertices[1]), int(vertices[2]))

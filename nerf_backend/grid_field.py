@@ -17,12 +17,26 @@ from torch import Tensor, nn
 
 from .dataset import SceneBounds
 from .encodings import PositionalEncoding
-from .grid_encodings import VectorMatrixGrid
+from .grid_encodings import Vertices, VectorMatrixGrid
+
+
+def vertices_for(resolution: int, extent: tuple[float, float, float]) -> Vertices:
+    """Vertices on each axis of a box of ``extent`` with ``resolution`` along its longest
+    side and cells as close to cubes as whole numbers allow.
+
+    Example:
+        >>> vertices_for(65, (2.0, 2.0, 0.5))
+        (65, 65, 17)
+    """
+    cell = max(extent) / (resolution - 1)
+    return tuple(max(2, round(side / cell) + 1) for side in extent)  # type: ignore[return-value]
 
 
 @dataclass(frozen=True)
 class GridFieldConfig:
-    resolution: int = 128  # grid vertices a side over the scene's box, at the end of training
+    # Grid vertices along the box's longest side at the end of training; the other sides get
+    # as many as keep the cells cubic (vertices_for).
+    resolution: int = 128
     # Coarse-to-fine: start at initial_resolution and grow geometrically to `resolution`,
     # one step at each of upsample_iterations (cheap early steps, detail later).
     initial_resolution: int = 128
@@ -49,8 +63,10 @@ class GridField(nn.Module):
         self.config = config
         self.register_buffer("box_min", torch.tensor(box.box_min, dtype=torch.float32))
         self.register_buffer("box_max", torch.tensor(box.box_max, dtype=torch.float32))
-        self.density_grid = VectorMatrixGrid(config.density_channels, config.initial_resolution)
-        self.appearance_grid = VectorMatrixGrid(config.appearance_channels, config.initial_resolution)
+        self.extent = tuple(hi - lo for lo, hi in zip(box.box_min, box.box_max))
+        vertices = vertices_for(config.initial_resolution, self.extent)
+        self.density_grid = VectorMatrixGrid(config.density_channels, vertices)
+        self.appearance_grid = VectorMatrixGrid(config.appearance_channels, vertices)
         self.appearance_basis = nn.Linear(self.appearance_grid.out_dims, config.appearance_dims, bias=False)
         self.direction_encoding = PositionalEncoding(3, config.direction_frequencies)
         colour_in = config.appearance_dims + (self.direction_encoding.out_dims if config.view_dependent else 0)
@@ -62,7 +78,12 @@ class GridField(nn.Module):
 
     @property
     def resolution(self) -> int:
-        return self.density_grid.resolution
+        """Vertices along the box's longest side."""
+        return max(self.density_grid.vertices)
+
+    @property
+    def vertices(self) -> Vertices:
+        return self.density_grid.vertices
 
     def resolution_after(self, iteration: int) -> int:
         """The schedule: the grid resolution once ``iteration`` steps have been taken."""
@@ -74,8 +95,9 @@ class GridField(nn.Module):
         return round(config.initial_resolution * ratio)
 
     def resize(self, resolution: int) -> None:
-        self.density_grid.resize(resolution)
-        self.appearance_grid.resize(resolution)
+        vertices = vertices_for(resolution, self.extent)
+        self.density_grid.resize(vertices)
+        self.appearance_grid.resize(vertices)
 
     def normalise(self, x: Tensor) -> Tensor:
         """World points → [-1, 1] over the box."""
@@ -96,7 +118,7 @@ class GridField(nn.Module):
 
     @torch.no_grad()
     def density_volume(self) -> Tensor:
-        """The density's pre-activation at every vertex, ``[1, 1, N, N, N]`` laid out (z, y, x)
+        """The density's pre-activation at every vertex, ``[1, 1, Nz, Ny, Nx]`` laid out (z, y, x)
         for ``grid_sample``. Each grid component is bilinear × linear, i.e. trilinear, so a
         trilinear read of this volume equals the factorised grid's value: one 1-channel
         lookup instead of six many-channel ones (what inference uses)."""
@@ -110,6 +132,6 @@ class GridField(nn.Module):
 
     @torch.no_grad()
     def vertex_density(self) -> Tensor:
-        """Density at every grid vertex ``[N, N, N]`` (x, y, z): within each grid cell the
+        """Density at every grid vertex ``[Nx, Ny, Nz]``: within each grid cell the
         density's pre-activation is trilinear, so these bound the density in the cell."""
         return self.density_from_features(self.density_grid.dense_sum())

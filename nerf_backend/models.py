@@ -18,6 +18,7 @@ from .dataset import SceneBounds
 from .fields import NerfField
 from .grid_field import GridField
 from .occupancy import OccupancyGrid
+from .occupancy_prior import OccupancyPrior
 from .ray_rendering import RenderOutput, render_rays
 from .samplers import interval_midpoints
 from .volume_rendering import accumulate, composite_rgb, expected_depth, render_weights
@@ -68,32 +69,39 @@ class GridModel(nn.Module):
     OPAQUE_TRANSMITTANCE = 1e-4
     render_chunk = GRID_RENDER_CHUNK
 
-    def __init__(self, config: TrainConfig, box: SceneBounds) -> None:
+    def __init__(self, config: TrainConfig, box: SceneBounds, prior: OccupancyPrior | None = None) -> None:
         super().__init__()
         self.config = config
         self.field = GridField(config.grid, box)
         self.box_size = torch.tensor(box.box_max) - torch.tensor(box.box_min)
+        self.prior = prior
         self._fit_sampling_to_grid()
 
     def _fit_sampling_to_grid(self) -> None:
-        """Step length, samples per ray and occupancy cells follow the grid's resolution."""
-        resolution = self.field.resolution
-        voxel = float(self.box_size.max()) / (resolution - 1)
-        self.step = self.config.grid_step_ratio * voxel
+        """Step length, samples per ray and occupancy cells follow the grid's vertices; the
+        prior, where the dataset has one, marks empty space from the start."""
+        cells = tuple(n - 1 for n in self.field.vertices)
+        spacing = min(float(side) / count for side, count in zip(self.box_size, cells))
+        self.step = self.config.grid_step_ratio * spacing
         self.samples_per_ray = math.ceil(float(self.box_size.norm()) / self.step) + 1
         # Alpha below this over one step is treated as empty space.
         self.density_threshold = -math.log1p(-self.config.occupancy_alpha_threshold) / self.step
         device = self.field.box_min.device
-        self.occupancy = OccupancyGrid(self.field.box_min, self.field.box_max, resolution - 1).to(device)
+        self.occupancy = OccupancyGrid(self.field.box_min, self.field.box_max, cells).to(device)
+        self.allowed: Tensor | None = None
+        if self.prior is not None:
+            box_min, box_max = self.field.box_min.tolist(), self.field.box_max.tolist()
+            self.allowed = self.prior.allowed_cells(box_min, box_max, cells).to(device)
+            self.occupancy.occupied.copy_(self.allowed)
 
     @torch.no_grad()
     def update_occupancy(self) -> None:
-        """Re-mark empty space from the field's own density. The threshold never exceeds the
-        mean density (Instant-NGP's rule), so a young, still-faint field is never pruned
-        to nothing."""
+        """Re-mark empty space from the field's own density, never outside the prior. The
+        threshold never exceeds the mean density (Instant-NGP's rule), so a young, still-faint
+        field is never pruned to nothing."""
         density = self.field.vertex_density()
         threshold = min(self.density_threshold, float(density.mean()))
-        self.occupancy.update_from_vertex_density(density, threshold)
+        self.occupancy.update_from_vertex_density(density, threshold, self.allowed)
 
     def resize(self, resolution: int) -> None:
         self.field.resize(resolution)
@@ -114,7 +122,7 @@ class GridModel(nn.Module):
 
     def match_state(self, state: dict) -> None:
         """Take the resolution a checkpoint was saved at, so its tensors load."""
-        resolution = state["field.density_grid.planes.0"].shape[-1]
+        resolution = max(max(state[f"field.density_grid.planes.{i}"].shape[-2:]) for i in range(3))
         if resolution != self.field.resolution:
             self.resize(resolution)
 
@@ -224,13 +232,14 @@ class GridModel(nn.Module):
                             weights=None, t_edges=None)
 
 
-def build_model(config: TrainConfig, box: SceneBounds | None) -> nn.Module:
+def build_model(config: TrainConfig, box: SceneBounds | None, prior: OccupancyPrior | None = None) -> nn.Module:
+    """The model ``config`` names; ``prior`` (grid models): where the scene can be."""
     if config.model == "nerf":
         return NerfModel(config)
     if config.model == "grid":
         if box is None:
             raise ValueError("the grid model needs the scene's box")
-        return GridModel(config, box)
+        return GridModel(config, box, prior)
     raise ValueError(f"unknown model {config.model!r}")
 
 

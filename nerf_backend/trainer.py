@@ -18,12 +18,14 @@ from tqdm import tqdm
 from .cameras import camera_rays, pixel_centres
 from .config import TrainConfig, preset_config, with_overrides
 from .auto import auto_config
-from .dataset import DatasetSplit, SceneBounds, composite, load_scene_bounds, load_scene_profile, load_split
+from .dataset import DatasetSplit, composite, load_scene_bounds, load_scene_profile, load_split
 from .devices import autocast_dtype, resolve_device
 from .errors import NerfError, RunError
 from .files import write_png
-from .metrics import mse_to_psnr
+from .collapse_guard import CollapseGuard, Verdict, blank_psnr, recovery_config
+from .metrics import mse_to_psnr, psnr
 from .models import build_model, final_output
+from .occupancy_prior import PRIOR_KINDS, OccupancyPrior, load_occupancy_prior
 from .ray_bounds import RayBounds, choose_ray_bounds
 from .render_views import render_image
 from .run_folder import IN_USE, LOCK_NAME, RunFolder
@@ -49,8 +51,9 @@ class TrainOptions:
 class TrainSummary:
     iteration: int
     train_seconds: float
-    stop_reason: str  # "iterations", "time" or "cancelled"
+    stop_reason: str  # "iterations", "time", "cancelled" or "collapsed"
     val_psnr: float | None
+    collapse: Verdict | None = None  # the guard's last verdict when the run ended collapsed
 
 
 class _TrainingProgress:
@@ -76,6 +79,13 @@ class _TrainingProgress:
 
     def show(self, **values: str) -> None:
         self.bar.set_postfix(it=self.iteration, **values) if self.by_time else self.bar.set_postfix(**values)
+
+    def note(self, message: str) -> None:
+        """A line above the bar (or alone on stderr when the bar is off): events the user must see."""
+        if self.bar.disable:
+            print(message, file=sys.stderr)
+        else:
+            self.bar.write(message, file=sys.stderr)
 
     def close(self) -> None:
         self.bar.close()
@@ -161,24 +171,54 @@ def _optimizer(model: torch.nn.Module, config: TrainConfig) -> torch.optim.Optim
 
 def train(options: TrainOptions) -> TrainSummary:
     dataset = Path(options.dataset).resolve()
-    # Read the whole dataset before touching the run folder: bad input leaves nothing behind.
+    # Read the whole dataset and settle the run before touching its folder: bad input
+    # (a broken dataset, a bad --set, a missing prior) leaves nothing behind.
     train_split = load_split(dataset, "train")
     val_split = _load_val(dataset) if options.validate else None
-    scene_bounds = load_scene_bounds(dataset)
     run = RunFolder(options.run)
     _refuse_to_overwrite(run, options, holding_lock=False)  # before the lock: a refused folder gains no lock file
+    plan = _plan_run(run, dataset, train_split, options)
     run.acquire_lock()
     try:
         _prepare_run_folder(run, options)
-        return _train_locked(run, dataset, train_split, val_split, scene_bounds, options)
+        return _train_locked(run, plan, val_split, options)
     finally:
         run.release_lock()
 
 
-def _train_locked(
-    run: RunFolder, dataset: Path, train_split: DatasetSplit, val_split: DatasetSplit | None,
-    scene_bounds: SceneBounds | None, options: TrainOptions,
-) -> TrainSummary:
+@dataclass
+class _RunPlan:
+    """What a run trains with: its settings, the decisions behind them and what it reads."""
+
+    dataset: Path
+    config: TrainConfig
+    seed: int
+    max_seconds: float | None
+    device: torch.device
+    train_split: DatasetSplit
+    ray_bounds: RayBounds
+    prior: OccupancyPrior | None
+    decisions: dict
+
+    def record(self) -> dict:
+        """The run's config.json."""
+        return {
+            "dataset": str(self.dataset),
+            "preset": self.config.preset,
+            "seed": self.seed,
+            "device": str(self.device),
+            "max_seconds": self.max_seconds,
+            "config": self.config.to_dict(),
+            "decisions": self.decisions,
+            "background": "white (RGBA composited as rgb·α + 1 − α)",
+            "image_size": [self.train_split.intrinsics.width, self.train_split.intrinsics.height],
+            "train_views": len(self.train_split),
+        }
+
+
+def _plan_run(run: RunFolder, dataset: Path, train_split: DatasetSplit, options: TrainOptions) -> _RunPlan:
+    """A new run's settings from its preset, ``--set`` and (``auto``) the scene; a resumed
+    run's from its folder. Reads only."""
     device = resolve_device(options.device)
     if options.resume:
         stored = run.read_config()
@@ -200,36 +240,36 @@ def _train_locked(
 
     if config.max_train_views is not None and config.max_train_views < len(train_split):
         train_split = train_split.subset(config.max_train_views)
-    ray_bounds, bounds_reason = choose_ray_bounds(config.ray_bounds, scene_bounds)
+    ray_bounds, bounds_reason = choose_ray_bounds(config.ray_bounds, load_scene_bounds(dataset))
     decisions = {"ray_bounds": {**ray_bounds.describe(), "reason": bounds_reason}}
-    if config.preset == "auto" and not options.resume:
+    if options.resume:
+        decisions = stored.get("decisions", decisions)
+    elif config.preset == "auto":
         config, auto_decisions = auto_config(config, train_split, ray_bounds.box, load_scene_profile(dataset))
         decisions.update(auto_decisions)
-    elif options.resume:
-        decisions = run.read_config().get("decisions", decisions)
-    run.write_config({
-        "dataset": str(dataset),
-        "preset": config.preset,
-        "seed": seed,
-        "device": str(device),
-        "max_seconds": max_seconds,
-        "config": config.to_dict(),
-        "decisions": decisions,
-        "background": "white (RGBA composited as rgb·α + 1 − α)",
-        "image_size": [train_split.intrinsics.width, train_split.intrinsics.height],
-        "train_views": len(train_split),
-    })
+    return _RunPlan(dataset, config, seed, max_seconds, device, train_split, ray_bounds,
+                    _occupancy_prior(dataset, config), decisions)
+
+
+def _train_locked(run: RunFolder, plan: _RunPlan, val_split: DatasetSplit | None, options: TrainOptions) -> TrainSummary:
+    config, seed, max_seconds, device = plan.config, plan.seed, plan.max_seconds, plan.device
+    train_split, ray_bounds, prior, decisions = plan.train_split, plan.ray_bounds, plan.prior, plan.decisions
+    record = plan.record()
+    run.write_config(record)
 
     amp_dtype = autocast_dtype(config.precision, device)
     # float16's narrow range needs the loss scaled so small gradients do not flush to zero.
     scaler = torch.amp.GradScaler(device.type, enabled=amp_dtype is torch.float16)
-    torch.manual_seed(seed)
-    model = build_model(config, ray_bounds.box).to(device)
+    # A run that collapsed starts again at `start_iteration` (its schedules count from
+    # there); `attempt` counts those starts.
+    restart = {"attempt": 0, "start_iteration": 0}
+    model = _new_model(config, ray_bounds, prior, seed, restart["attempt"], device)
     batch_generator = torch.Generator().manual_seed(seed)
     sample_generator = torch.Generator(device=device).manual_seed(seed + 1)
     iteration, train_seconds = 0, 0.0
     state = run.load_checkpoint(device) if options.resume and run.checkpoint_path.exists() else None
     if state is not None:
+        restart = state.get("restart", restart)
         model.match_state(state["model"])  # the grids' resolution at the checkpoint
         model.load_state_dict(state["model"])
     optimizer = _optimizer(model, config)  # built for the parameters as they now are
@@ -250,7 +290,7 @@ def _train_locked(
         run.save_checkpoint({
             "iteration": iteration, "train_seconds": train_seconds, "model": model.state_dict(),
             "optimizer": optimizer.state_dict(), "batch_rng": batch_generator.get_state(),
-            "sample_rng": sample_generator.get_state(), "config": config.to_dict(),
+            "sample_rng": sample_generator.get_state(), "config": config.to_dict(), "restart": restart,
             **({"grad_scaler": scaler.state_dict()} if scaler.is_enabled() else {}),
         })
         run.log_event("checkpoint", iteration=iteration, elapsed_s=train_seconds, path=str(run.checkpoint_path))
@@ -269,9 +309,36 @@ def _train_locked(
     run.log_event("start", iteration=iteration, resumed=options.resume, preset=config.preset,
                   device=str(device), target_iterations=config.iterations, max_seconds=max_seconds)
     val_psnr: float | None = None
+    score: _ViewScore | None = None
+    collapse: Verdict | None = None
     stop_reason = "iterations"
     progress = _TrainingProgress(config.iterations, iteration, max_seconds, train_seconds,
                                  enabled=options.progress, description=f"train {config.preset}")
+    guard = CollapseGuard(val_split, ray_bounds, config.collapse_margin_db)
+
+    def report_collapse(verdict: Verdict, action: str, final: bool) -> None:
+        run.log_event("collapse", iteration=verdict.iteration, val_psnr=verdict.psnr, blank_psnr=verdict.blank_psnr,
+                      margin_db=verdict.margin_db, views=list(verdict.views), action=action,
+                      reason=verdict.describe(), final=final)
+        progress.note(f"collapse: {verdict.describe()}; {action}")
+
+    def collapsed_run_restarts() -> bool:
+        """After a collapse: start again once with the recovery config (True), else stop."""
+        nonlocal config, model, optimizer
+        if restart["attempt"] >= 1:
+            report_collapse(collapse, "stopped: it had already been restarted once", final=True)
+            return False
+        config, changes, reasons = recovery_config(config, has_transparency=bool((rgba[..., 3] < 255).any()))
+        action = "restarted from a new start with " + "; ".join(reasons)
+        decisions["collapse_recovery"] = {"value": changes, "at_iteration": iteration,
+                                          "reason": f"{collapse.describe()}: {action}"}
+        restart.update(attempt=restart["attempt"] + 1, start_iteration=iteration)
+        run.write_config({**record, "config": config.to_dict(), "decisions": decisions})
+        model = _new_model(config, ray_bounds, prior, seed, restart["attempt"], device)
+        optimizer = _optimizer(model, config)
+        report_collapse(collapse, action, final=False)
+        return True
+
     model.train()
     with _StopRequest() as stop:
         while iteration < config.iterations:
@@ -281,8 +348,9 @@ def _train_locked(
             if stop.requested:
                 stop_reason = "cancelled"
                 break
+            step = iteration - restart["start_iteration"]  # the schedules' step
             step_start = time.perf_counter()
-            precrop = config.precrop_fraction if iteration < config.precrop_iterations else None
+            precrop = config.precrop_fraction if step < config.precrop_iterations else None
             image_index, pixel_index = sample_ray_batch(train_split, config.rays_per_batch, batch_generator, precrop)
             image_index, pixel_index = image_index.to(device), pixel_index.to(device)
             pixels_rgba = rgba[image_index, pixel_index // width, pixel_index % width]
@@ -293,10 +361,10 @@ def _train_locked(
             target = composite(pixels_rgba, background)
             origins, directions = camera_rays(train_split.intrinsics, poses[image_index], pixel_centres(width, pixel_index))
             t_near, t_far = ray_bounds(origins, directions)
-            decay = config.learning_rate_at(iteration) / config.learning_rate
+            decay = config.learning_rate_decay(step)
             for group in optimizer.param_groups:
                 group["lr"] = group["initial_lr"] * decay
-            if model.before_step(iteration):
+            if model.before_step(step):
                 optimizer = _optimizer(model, config)  # the grids were resampled
             with torch.autocast(device.type, dtype=amp_dtype or torch.float32, enabled=amp_dtype is not None):
                 outputs = model(origins, directions, t_near, t_far, background=background,
@@ -317,29 +385,74 @@ def _train_locked(
                 batch_psnr = mse_to_psnr(final_mse.item())
                 progress.show(loss=f"{loss.item():.4f}", psnr=f"{batch_psnr:.2f}")
                 run.log_event("train", iteration=iteration, loss=loss.item(), psnr=batch_psnr,
-                              lr=config.learning_rate_at(iteration), elapsed_s=train_seconds)
+                              lr=config.learning_rate_at(step + 1), elapsed_s=train_seconds)
             if val_split is not None and iteration % config.validate_every == 0:
-                val_psnr = _validate(model, val_split, ray_bounds, run, iteration, train_seconds)
+                score = _validate(model, val_split, ray_bounds, run, iteration, train_seconds)
+                val_psnr = score.psnr
+                if iteration - restart["start_iteration"] >= config.collapse_check_after:
+                    collapse = guard.confirm(model, score.psnr, score.blank_psnr, iteration)
+                    if collapse is not None and not collapsed_run_restarts():
+                        stop_reason = "collapsed"
+                        break
             if iteration % config.checkpoint_every == 0:
                 checkpoint()
     progress.close()
-    if val_split is not None and (val_psnr is None or iteration % config.validate_every != 0):
-        val_psnr = _validate(model, val_split, ray_bounds, run, iteration, train_seconds)
+    if val_split is not None and stop_reason != "collapsed":
+        if score is None or score.iteration != iteration:
+            score = _validate(model, val_split, ray_bounds, run, iteration, train_seconds)
+            val_psnr = score.psnr
+        # A run old enough to judge never ends silently on a near-blank model (a younger one
+        # is not yet called a failure: it may simply not have started).
+        old_enough = iteration - restart["start_iteration"] >= config.collapse_check_after
+        collapse = guard.confirm(model, score.psnr, score.blank_psnr, iteration) if old_enough else None
+        if collapse is not None:
+            report_collapse(collapse, f"none: the run ended ({stop_reason}) before it could recover", final=True)
+            stop_reason = "collapsed"
     checkpoint()
     run.log_event("done", iteration=iteration, elapsed_s=train_seconds, reason=stop_reason, val_psnr=val_psnr)
-    return TrainSummary(iteration, train_seconds, stop_reason, val_psnr)
+    return TrainSummary(iteration, train_seconds, stop_reason, val_psnr, collapse=collapse)
+
+
+def _occupancy_prior(dataset: Path, config: TrainConfig) -> OccupancyPrior | None:
+    """The dataset's occupancy prior of the kind ``config`` asks for (grid models only)."""
+    if config.model != "grid" or config.occupancy_prior == "none":
+        return None
+    if config.occupancy_prior not in PRIOR_KINDS:
+        raise NerfError(f"occupancy_prior {config.occupancy_prior!r}: choose none, {', '.join(PRIOR_KINDS)}")
+    prior = load_occupancy_prior(dataset, config.occupancy_prior)
+    if prior is None:
+        raise NerfError(f"{dataset}: occupancy_prior={config.occupancy_prior} asked for, but the dataset has no "
+                        f"occupancy prior (scene_profile.json names none); use occupancy_prior=none")
+    return prior
+
+
+def _new_model(config: TrainConfig, ray_bounds: RayBounds, prior: OccupancyPrior | None, seed: int, attempt: int,
+               device: torch.device) -> torch.nn.Module:
+    """A freshly initialised model; each restart after a collapse draws another initialisation."""
+    torch.manual_seed(seed + 1000 * attempt)
+    return build_model(config, ray_bounds.box, prior).to(device)
+
+
+@dataclass(frozen=True)
+class _ViewScore:
+    """One validation: the model's PSNR on a view and the blank white image's on the same view."""
+
+    iteration: int
+    psnr: float
+    blank_psnr: float
 
 
 def _validate(
     model: torch.nn.Module, val_split: DatasetSplit, ray_bounds: RayBounds, run: RunFolder, iteration: int,
     train_seconds: float,
-) -> float:
-    """Render one validation view (cycling through them) and log its PSNR; the render
-    becomes RUN/preview.png for anyone watching."""
+) -> _ViewScore:
+    """Render one validation view (cycling through them) and log its PSNR next to the blank
+    image's; the render becomes RUN/preview.png for anyone watching."""
     view = (iteration // max(1, model.config.validate_every)) % len(val_split)
     image = render_image(model, val_split.intrinsics, val_split.poses[view], ray_bounds)
     target = val_split.rgb_on_white(view).numpy()
-    value = mse_to_psnr(float(((image.rgb - target) ** 2).mean()))
+    score = _ViewScore(iteration, psnr(image.rgb, target), blank_psnr(target))
     write_png(run.path / "preview.png", image.rgb)
-    run.log_event("val", iteration=iteration, psnr=value, view=view, elapsed_s=train_seconds)
-    return value
+    run.log_event("val", iteration=iteration, psnr=score.psnr, blank_psnr=score.blank_psnr, view=view,
+                  elapsed_s=train_seconds)
+    return score

@@ -29,7 +29,7 @@ def _reference_bilinear(image: torch.Tensor, u: float, v: float) -> torch.Tensor
 
 def test_vector_matrix_interpolation_matches_a_hand_written_reference():
     torch.manual_seed(0)
-    grid = VectorMatrixGrid(channels=3, resolution=9).double()
+    grid = VectorMatrixGrid(channels=3, vertices=(9, 7, 5)).double()  # one count per axis
     points = torch.rand(20, 3, dtype=torch.float64) * 2 - 1
     features = grid(points)
     for p, got in zip(points, features):
@@ -43,16 +43,18 @@ def test_vector_matrix_interpolation_matches_a_hand_written_reference():
 
 def test_dense_sum_equals_the_interpolated_feature_sum_at_vertices():
     torch.manual_seed(1)
-    grid = VectorMatrixGrid(channels=4, resolution=7).double()
+    vertices = torch.tensor([7, 5, 6])
+    grid = VectorMatrixGrid(channels=4, vertices=tuple(vertices.tolist())).double()
     volume = grid.dense_sum()
-    index = torch.randint(0, 7, (30, 3))
-    points = index.double() / 6 * 2 - 1
+    assert volume.shape == (7, 5, 6)
+    index = (torch.rand(30, 3) * vertices).long()
+    points = index.double() / (vertices - 1) * 2 - 1
     assert torch.allclose(grid(points).sum(dim=-1), volume[index[:, 0], index[:, 1], index[:, 2]], atol=1e-12)
 
 
 def test_resize_keeps_the_represented_volume():
     torch.manual_seed(2)
-    grid = VectorMatrixGrid(channels=2, resolution=5).double()
+    grid = VectorMatrixGrid(channels=2, vertices=5).double()
     # A volume that is linear per axis survives any resampling exactly.
     with torch.no_grad():
         axis = torch.linspace(-1, 1, 5, dtype=torch.float64)
@@ -62,29 +64,43 @@ def test_resize_keeps_the_represented_volume():
             line[:] = (1 + 0.5 * axis)[None, None, :, None]
     points = torch.rand(50, 3, dtype=torch.float64) * 2 - 1
     before = grid(points)
-    grid.resize(11)
-    assert grid.planes[0].shape[-1] == 11 and grid.lines[0].shape[-2] == 11
+    grid.resize((11, 9, 7))
+    assert grid.planes[0].shape[-2:] == (11, 9) and grid.lines[0].shape[-2] == 7 and grid.lines[2].shape[-2] == 11
     assert torch.allclose(grid(points), before, atol=1e-12)
 
 
-def test_occupancy_grid_never_skips_a_cell_that_holds_density():
+FLAT_BOX = SceneBounds((-1.0, -1.0, -0.2), (1.0, 1.0, 0.2))
+
+
+@pytest.mark.parametrize("box", [BOX, FLAT_BOX], ids=["cube", "flat"])
+def test_occupancy_grid_never_skips_a_cell_that_holds_density(box):
     """Random fields: every point whose density exceeds the threshold lies in an occupied
-    cell, because the bound at a cell's corners is exact for the grid field."""
+    cell, because the bound at a cell's corners is exact for the grid field (also with a
+    vertex count of its own on each axis of a flat box)."""
     config = PRESETS["fast"]
+    low, high = torch.tensor(box.box_min), torch.tensor(box.box_max)
     for seed in range(3):
         torch.manual_seed(seed)
-        model = GridModel(config, BOX)
+        model = GridModel(config, box)
         with torch.no_grad():  # a field with structure: some dense blobs, mostly empty
             for plane in model.field.density_grid.planes:
                 plane.normal_(0.0, 2.0)
         model.update_occupancy()
         density_threshold = min(model.density_threshold, float(model.field.vertex_density().mean()))
-        points = torch.rand(200_000, 3) * 2 - 1
+        points = torch.rand(200_000, 3) * (high - low) + low
         density = model.field.density(points)
         dense_points = points[density > density_threshold]
         assert dense_points.shape[0] > 100, "the test field must have dense regions"
         assert model.occupancy.query(dense_points).all()
         assert 0.0 < model.occupancy.occupied_fraction < 1.0
+
+
+def test_a_flat_box_gets_cubic_cells():
+    model = GridModel(PRESETS["fast"], FLAT_BOX)
+    assert model.field.vertices == (48, 48, 10)  # 48 along the long sides: cells 2/47 by 0.4/9
+    cell = [side / (n - 1) for side, n in zip((2.0, 2.0, 0.4), model.field.vertices)]
+    assert max(cell) / min(cell) < 1.05
+    assert model.occupancy.occupied.shape == (47, 47, 9)
 
 
 def test_occupancy_query_outside_the_box_is_empty():
@@ -145,7 +161,7 @@ def test_coarse_to_fine_schedule():
     assert resolutions[0] < resolutions[1] < resolutions[2] == grid.resolution
     assert model.before_step(grid.upsample_iterations[0]) is True
     assert model.field.resolution == resolutions[1]
-    assert model.occupancy.cells == resolutions[1] - 1
+    assert model.occupancy.cells == (resolutions[1] - 1,) * 3
 
 
 def _solid_grid_model() -> GridModel:

@@ -1,0 +1,173 @@
+"""Trap scenes for the benchmark suite, built in code: each stands for a kind of user scene a
+NeRF preset has failed on (the registry, with a line on each, is `builtin_scenes`).
+
+They are fitted into the protocol's frame like any user scene (`--frame fit`); the sizes below
+are Blender units, and each scene's bounding sphere is made about the fitted radius (1.229 for
+the protocol camera) so that Blender units are about NeRF units, except `ground_plane`, whose
+plane sets its scale.  At 100x100 the protocol camera sees 2.9 units across at the origin:
+0.029 units a pixel.
+
+* `bright_object`: a white sphere of radius 1.25 (after the fit about 1.2, about 60 % of every
+  protocol frame) with a narrow dark groove (a thin torus, tilted so every view crosses it),
+  under a white world and a sun: a large, bright object on the transparent film, where the
+  blank white image already scores well and an empty model is a strong local minimum.
+* `thin_structure`: a 3x3x3 lattice of wires of radius 0.018 (1.3 pixels wide at 100x100 at
+  the centre, 1-2 pixels over the scene's depth), a thin ring (tube radius 0.012) on a rod
+  (radius 0.015) above it, and a small solid sphere at the lattice's centre.
+* `off_centre`: a cube with a ball on it filling one corner of the bounding box, a small cube
+  in the opposite corner, nothing near the box's centre: the mass's centre is about 0.6 of the
+  box's half-diagonal away from the box's centre.
+* `ground_plane`: a 12x12 textured ground plane with four objects of about 1 unit on it: the
+  plane sets the bounds (after the fit the objects are 5-8 pixels wide at 100x100).
+* `glass_and_gloss`: a glass sphere and a glass cube (transmission 1, IOR 1.45), a chrome
+  sphere and a copper torus (metallic, roughness 0.05 and 0.15) on a small diffuse base.
+
+Built with the demo's helpers (`demo_scene`), with the data API only; deterministic.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import bmesh
+import bpy
+from mathutils import Matrix, Vector
+
+from .demo_scene import (
+    add_object,
+    add_sun,
+    assign,
+    cone_mesh,
+    cube_mesh,
+    cylinder_mesh,
+    make_material,
+    mesh_from_bmesh,
+    new_protocol_scene,
+    plain_world,
+    sphere_mesh,
+    textured_material,
+    torus_mesh,
+)
+
+SKY = (0.55, 0.60, 0.70)  # the demo's world colour
+
+
+def _finish(scene: "bpy.types.Scene") -> "bpy.types.Scene":
+    scene.view_layers[0].update()
+    return scene
+
+
+def build_bright_object(name: str = "NeRF bright_object") -> "bpy.types.Scene":
+    scene = new_protocol_scene(name)
+    scene.world = plain_world(name, (1.0, 1.0, 1.0), 0.8)
+    radius = 1.25
+    sphere = add_object(scene, "white sphere", sphere_mesh("white sphere", radius), (0.0, 0.0, 0.0))
+    assign(sphere, make_material("white", (0.9, 0.9, 0.9), roughness=0.5))
+    groove = add_object(scene, "groove", torus_mesh("groove", radius, 0.03, major_segments=128),
+                        (0.0, 0.0, 0.0), rotation_x_deg=25.0)
+    assign(groove, make_material("groove", (0.03, 0.03, 0.03), roughness=0.6))
+    add_sun(scene, name, energy=2.0, rotation_x_deg=35.0, rotation_z_deg=20.0)
+    return _finish(scene)
+
+
+def _wires_mesh(name: str, segments: Sequence[tuple[Sequence[float], Sequence[float]]],
+                radius: float) -> "bpy.types.Mesh":
+    """One mesh of thin capped cylinders, one between each pair of points."""
+    bm = bmesh.new()
+    for start, end in segments:
+        a, b = Vector(start), Vector(end)
+        axis = b - a
+        rotation = axis.to_track_quat("Z", "Y").to_matrix().to_4x4()
+        placement = Matrix.Translation((a + b) / 2.0) @ rotation
+        bmesh.ops.create_cone(bm, cap_ends=True, cap_tris=False, segments=12, radius1=radius, radius2=radius,
+                              depth=axis.length, matrix=placement)
+    return mesh_from_bmesh(name, bm, smooth=True)
+
+
+def build_thin_structure(name: str = "NeRF thin_structure") -> "bpy.types.Scene":
+    scene = new_protocol_scene(name)
+    scene.world = plain_world(name, SKY, 0.6)
+    half, wire = 0.55, 0.018
+    levels = (-half, 0.0, half)
+    reach = half + wire  # each wire runs past the corners by its radius, so the corners close
+    segments = []
+    for u in levels:
+        for v in levels:
+            segments.append(((-reach, u, v), (reach, u, v)))
+            segments.append(((u, -reach, v), (u, reach, v)))
+            segments.append(((u, v, -reach), (u, v, reach)))
+    lattice = add_object(scene, "wire lattice", _wires_mesh("wire lattice", segments, wire), (0.0, 0.0, 0.0))
+    assign(lattice, make_material("wire", (0.10, 0.20, 0.60), roughness=0.4))
+    rod_length = 0.35
+    rod = add_object(scene, "thin rod", cylinder_mesh("thin rod", 0.015, rod_length, 16),
+                     (0.0, 0.0, half + rod_length / 2.0))
+    assign(rod, make_material("rod", (0.60, 0.05, 0.05), roughness=0.4))
+    ring_major = 0.17
+    ring = add_object(scene, "thin ring", torus_mesh("thin ring", ring_major, 0.012),
+                      (0.0, 0.0, half + rod_length + ring_major), rotation_x_deg=90.0, rotation_z_deg=30.0)
+    assign(ring, make_material("ring", (0.10, 0.60, 0.25), roughness=0.3))
+    core = add_object(scene, "solid sphere", sphere_mesh("solid sphere", 0.16), (0.0, 0.0, 0.0))
+    assign(core, make_material("core", (0.90, 0.50, 0.10), roughness=0.5))
+    add_sun(scene, name, energy=3.0, rotation_x_deg=40.0, rotation_z_deg=30.0)
+    return _finish(scene)
+
+
+def build_off_centre(name: str = "NeRF off_centre") -> "bpy.types.Scene":
+    scene = new_protocol_scene(name)
+    scene.world = plain_world(name, SKY, 0.6)
+    block = add_object(scene, "corner block", cube_mesh("corner block", 0.7), (-0.65, -0.65, -0.65))
+    assign(block, textured_material("terracotta", "ShaderNodeTexChecker", (0.70, 0.30, 0.15), (0.85, 0.55, 0.35),
+                                    scale=3.0))
+    ball = add_object(scene, "corner ball", sphere_mesh("corner ball", 0.22), (-0.72, -0.72, -0.08))
+    assign(ball, make_material("teal", (0.10, 0.50, 0.50), roughness=0.5))
+    marker = add_object(scene, "far cube", cube_mesh("far cube", 0.12), (0.94, 0.94, 0.94))
+    assign(marker, make_material("yellow", (0.90, 0.80, 0.10), roughness=0.5))
+    add_sun(scene, name, energy=3.0, rotation_x_deg=40.0, rotation_z_deg=30.0)
+    return _finish(scene)
+
+
+def _plane_mesh(name: str, half: float) -> "bpy.types.Mesh":
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata([(-half, -half, 0.0), (half, -half, 0.0), (half, half, 0.0), (-half, half, 0.0)], [],
+                     [(0, 1, 2, 3)])
+    mesh.update()
+    return mesh
+
+
+def build_ground_plane(name: str = "NeRF ground_plane") -> "bpy.types.Scene":
+    scene = new_protocol_scene(name)
+    scene.world = plain_world(name, SKY, 0.6)
+    ground = add_object(scene, "ground", _plane_mesh("ground", 6.0), (0.0, 0.0, 0.0))
+    assign(ground, textured_material("ground", "ShaderNodeTexChecker", (0.45, 0.42, 0.38), (0.60, 0.57, 0.52),
+                                     scale=12.0))
+    cube = add_object(scene, "cube", cube_mesh("cube", 1.0), (-1.2, 0.6, 0.5), rotation_z_deg=20.0)
+    assign(cube, make_material("blue", (0.10, 0.25, 0.70), roughness=0.6))
+    ball = add_object(scene, "ball", sphere_mesh("ball", 0.6), (1.0, 0.9, 0.6))
+    assign(ball, make_material("red", (0.75, 0.10, 0.08), roughness=0.4))
+    cone = add_object(scene, "cone", cone_mesh("cone", 0.5, 1.2, 48), (0.2, -1.2, 0.6))
+    assign(cone, make_material("green", (0.15, 0.55, 0.20), roughness=0.6))
+    post = add_object(scene, "post", cylinder_mesh("post", 0.3, 1.6, 48), (1.6, -0.8, 0.8))
+    assign(post, make_material("white", (0.85, 0.85, 0.80), roughness=0.5))
+    add_sun(scene, name, energy=3.0, rotation_x_deg=40.0, rotation_z_deg=30.0)
+    return _finish(scene)
+
+
+def build_glass_and_gloss(name: str = "NeRF glass_and_gloss") -> "bpy.types.Scene":
+    scene = new_protocol_scene(name)
+    scene.world = plain_world(name, SKY, 0.6)
+    top = -0.5
+    base = add_object(scene, "base", cylinder_mesh("base", 0.95, 0.14, 96), (0.0, 0.0, top - 0.07))
+    assign(base, make_material("base", (0.50, 0.45, 0.40), roughness=1.0, diffuse=True))
+    glass_ball = add_object(scene, "glass sphere", sphere_mesh("glass sphere", 0.33), (-0.4, -0.2, top + 0.33))
+    assign(glass_ball, make_material("glass", (1.0, 1.0, 1.0), roughness=0.0, transmission=1.0, ior=1.45))
+    glass_cube = add_object(scene, "glass cube", cube_mesh("glass cube", 0.4), (0.1, 0.45, top + 0.2),
+                            rotation_z_deg=30.0)
+    assign(glass_cube, make_material("green glass", (0.80, 0.95, 0.90), roughness=0.0, transmission=1.0, ior=1.45))
+    chrome = add_object(scene, "chrome sphere", sphere_mesh("chrome sphere", 0.3), (0.45, -0.3, top + 0.3))
+    assign(chrome, make_material("chrome", (0.90, 0.90, 0.90), roughness=0.05, metallic=1.0))
+    ring = add_object(scene, "copper torus", torus_mesh("copper torus", 0.25, 0.07),
+                      (-0.35, 0.45, top + 0.32), rotation_x_deg=90.0, rotation_z_deg=-30.0)
+    assign(ring, make_material("copper", (0.95, 0.60, 0.45), roughness=0.15, metallic=1.0))
+    add_sun(scene, name, energy=3.0, rotation_x_deg=40.0, rotation_z_deg=30.0)
+    return _finish(scene)
+

@@ -1,0 +1,156 @@
+"""Training and measuring each variant of one dataset, each in its own process: ``run_bench``
+writes ``bench.json``, ``bench.md`` and ``bench.png``."""
+
+from __future__ import annotations
+
+import io
+import multiprocessing
+import queue as queue_module
+import resource
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import NerfError
+from ..files import write_json
+from .curves import THRESHOLDS_DB, curve_points, time_to_reach
+from .tables import markdown_table, plot_curves
+from .variants import Variant, ablation_order
+
+
+def _score(run_dir: Path, split, indices: list[int], device: torch.device) -> tuple[float, float, float]:
+    """Mean PSNR, SSIM and render seconds per image over ``indices`` of ``split``."""
+    from ..inference import load_trained_model
+    from ..metrics import psnr, ssim
+    from ..render_views import render_image
+    from ..run_folder import RunFolder
+
+    model, ray_bounds, _ = load_trained_model(RunFolder(run_dir), device)
+    psnrs, ssims, seconds = [], [], []
+    for index in indices:
+        start = time.perf_counter()
+        image = render_image(model, split.intrinsics, split.poses[index], ray_bounds)
+        seconds.append(time.perf_counter() - start)
+        rendered = np.round(image.rgb * 255) / 255  # as written to PNG
+        reference = split.rgb_on_white(index).numpy()
+        psnrs.append(psnr(rendered, reference))
+        ssims.append(ssim(rendered, reference))
+    return float(np.mean(psnrs)), float(np.mean(ssims)), float(np.mean(seconds))
+
+
+def bench_variant(dataset: str, variant: Variant, out_dir: str, budget_seconds: float | None,
+                  iterations: int | None, points: int, curve_views: int, seed: int, device_name: str) -> dict:
+    """Train and measure one variant (runs in a child process)."""
+    from ..dataset import load_split
+    from ..devices import resolve_device
+    from ..trainer import TrainOptions, train
+
+    device = resolve_device(device_name)
+    test = load_split(dataset, "test")
+    curve_indices = sorted({round(i) for i in np.linspace(0, len(test) - 1, min(curve_views, len(test)))})
+    run_dir = Path(out_dir) / "runs" / variant.name
+    curve = []
+    summary = None
+    for k, target in enumerate(curve_points(budget_seconds, iterations, points)):
+        summary = train(TrainOptions(
+            dataset=Path(dataset), run=run_dir, preset=variant.preset if k == 0 else None,
+            overrides=variant.overrides if k == 0 else (), seed=seed, device=device_name,
+            max_seconds=target if budget_seconds is not None else None,
+            iterations=int(target) if iterations is not None else (10**9 if k == 0 else None),
+            resume=k > 0, overwrite=k == 0, progress=False,
+        ))
+        value, similarity, _ = _score(run_dir, test, curve_indices, device)
+        curve.append({"train_seconds": summary.train_seconds, "iteration": summary.iteration,
+                      "psnr": value, "ssim": similarity})
+        print(f"bench {variant.name}: {summary.iteration} it, {summary.train_seconds:.1f} s, "
+              f"PSNR {value:.2f} dB on {len(curve_indices)} test views", file=sys.stderr, flush=True)
+    final_psnr, final_ssim, render_seconds = _score(run_dir, test, list(range(len(test))), device)
+    from ..inference import load_trained_model
+    from ..run_folder import RunFolder
+
+    model, _, _ = load_trained_model(RunFolder(run_dir), device)
+    buffer = io.BytesIO()
+    torch.save(model.state_dict(), buffer)
+    return {
+        "name": variant.name, "preset": variant.preset, "overrides": list(variant.overrides),
+        "curve": curve,
+        "time_to_psnr_s": {f"{t:g}": time_to_reach(curve, t) for t in THRESHOLDS_DB},
+        "final": {"psnr": final_psnr, "ssim": final_ssim, "test_views": len(test),
+                  "iterations": summary.iteration, "train_seconds": summary.train_seconds},
+        "render_seconds_per_image": render_seconds,
+        "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "model_size_mb": buffer.getbuffer().nbytes / 2**20,
+        "image_size": [test.intrinsics.width, test.intrinsics.height],
+    }
+
+
+def _child(queue, *args) -> None:
+    try:
+        queue.put(("ok", bench_variant(*args)))
+    except BaseException as exc:  # reported by the parent with the variant's name
+        queue.put(("error", f"{type(exc).__name__}: {exc}"))
+
+
+def _result(queue, process) -> tuple[str, object]:
+    """The variant's result, or an error once its process has died without one (killed by
+    the system, say) instead of waiting for ever."""
+    while True:
+        try:
+            return queue.get(timeout=1.0)
+        except queue_module.Empty:
+            if not process.is_alive():
+                return "error", f"its process ended (exit code {process.exitcode}) without a result"
+
+
+def _raise_exit(signum, frame) -> None:
+    raise SystemExit(128 + signum)
+
+
+def run_bench(dataset: Path, variants: list[Variant], out_dir: Path, budget_seconds: float | None,
+              iterations: int | None, points: int = 6, curve_views: int = 8, seed: int = 0,
+              device: str = "auto", overwrite: bool = False) -> dict:
+    if (budget_seconds is None) == (iterations is None):
+        raise NerfError("bench: give exactly one of --budget-seconds or --iters")
+    if out_dir.exists() and any(out_dir.iterdir()) and not overwrite:
+        raise NerfError(f"{out_dir}: bench folder exists and is not empty; pass --overwrite to replace it")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    context = multiprocessing.get_context("spawn")
+    results = []
+    # SIGTERM becomes an exception here, so that the variant's process is stopped with us
+    # (an orphan would go on training and hold its run folder's lock).
+    previous = signal.signal(signal.SIGTERM, _raise_exit) if threading.current_thread() is threading.main_thread() else None
+    try:
+        for variant in variants:
+            queue = context.Queue()
+            process = context.Process(target=_child, args=(queue, str(dataset), variant, str(out_dir), budget_seconds,
+                                                           iterations, points, curve_views, seed, device))
+            process.start()
+            try:
+                status, payload = _result(queue, process)
+                process.join()
+            finally:
+                if process.is_alive():  # we are being stopped: so is the variant (SIGTERM would only end its segment)
+                    process.kill()
+                    process.join()
+            if status != "ok":
+                raise NerfError(f"bench: variant {variant.name!r} failed: {payload}")
+            results.append(payload)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    report = {
+        "dataset": str(dataset.resolve()), "seed": seed, "device": device,
+        "budget": {"seconds": budget_seconds} if budget_seconds is not None else {"iterations": iterations},
+        "machine": {"torch": torch.__version__, "threads": torch.get_num_threads()},
+        "variants": results,
+        "ablation_order": ablation_order(results),
+    }
+    write_json(out_dir / "bench.json", report)
+    (out_dir / "bench.md").write_text(markdown_table(report))
+    plot_curves(report, out_dir / "bench.png")
+    return report

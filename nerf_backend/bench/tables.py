@@ -1,0 +1,127 @@
+"""What a bench writes for people: the markdown table and the PSNR-against-time plot."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from .curves import THRESHOLDS_DB
+
+
+def _fmt(value: float | None, spec: str) -> str:
+    return "—" if value is None or (isinstance(value, float) and math.isnan(value)) else format(value, spec)
+
+
+def markdown_table(report: dict) -> str:
+    budget = report["budget"]
+    lines = [
+        f"Budget: {budget.get('seconds', budget.get('iterations'))} "
+        f"{'training seconds' if 'seconds' in budget else 'iterations'} per variant, seed {report['seed']}, "
+        f"torch {report['machine']['torch']} on {report['machine']['threads']} threads.",
+        "",
+        "| variant | iterations | test PSNR (dB) | SSIM | s to 20 / 25 / 30 dB | render s/image | peak MB | model MB |",
+        "| --- | ---: | ---: | ---: | --- | ---: | ---: | ---: |",
+    ]
+    for v in report["variants"]:
+        reach = " / ".join(_fmt(v["time_to_psnr_s"][f"{t:g}"], ".0f") for t in THRESHOLDS_DB)
+        lines.append(f"| {v['name']} | {v['final']['iterations']} | {v['final']['psnr']:.2f} | {v['final']['ssim']:.4f} "
+                     f"| {reach} | {v['render_seconds_per_image']:.2f} | {v['peak_memory_mb']:.0f} "
+                     f"| {v['model_size_mb']:.1f} |")
+    if report.get("ablation_order"):
+        lines += ["", "Ablations against the NeRF paper's order (its Table 2):", ""]
+        for check in report["ablation_order"]:
+            lines.append(f"- {check['claim']}: {check['psnr'][0]:.2f} vs {check['psnr'][1]:.2f} dB — "
+                         f"{'agrees' if check['holds'] else 'does not agree'} with the paper")
+    return "\n".join(lines) + "\n"
+
+
+def plot_curves(report: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(7, 4.5), dpi=120)
+    for v in report["variants"]:
+        xs = [0.0] + [p["train_seconds"] for p in v["curve"]]
+        ys = [float("nan")] + [p["psnr"] for p in v["curve"]]
+        axis.plot(xs, ys, marker="o", label=v["name"])
+    for t in THRESHOLDS_DB:
+        axis.axhline(t, color="grey", linewidth=0.5, linestyle=":")
+    axis.set_xlabel("training time (s)")
+    axis.set_ylabel("test PSNR (dB)")
+    axis.set_title("Speed / accuracy: PSNR against training time")
+    axis.grid(alpha=0.3)
+    axis.legend()
+    figure.tight_layout()
+    figure.savefig(path)
+    plt.close(figure)
+
+
+def suite_markdown(summary: dict) -> str:
+    """The suite's summary: a row per scene and variant, then each scene's best fixed variant
+    and auto's gap to it."""
+    budget = summary["budget"]
+    lines = [
+        f"Budget: {budget.get('seconds', budget.get('iterations'))} "
+        f"{'training seconds' if 'seconds' in budget else 'iterations'} per variant and scene, seed {summary['seed']}, "
+        f"torch {summary['machine']['torch']} on {summary['machine']['threads']} threads. Blank: the PSNR of an "
+        "all-white image against the test views. Collapse: detected by the trainer (a `collapse` event) / final "
+        f"PSNR within {summary['collapse_margin_db']:g} dB of the blank image's.",
+        "",
+        "| scene | variant | test PSNR (dB) | SSIM | s to 25 / 30 dB | s/iteration | iterations | blank PSNR (dB) "
+        "| collapse detected / final |",
+        "| --- | --- | ---: | ---: | --- | ---: | ---: | ---: | --- |",
+    ]
+    for scene in summary["scenes"]:
+        for row in scene["variants"]:
+            reach = " / ".join(_fmt(row[f"time_to_{t}_db_s"], ".0f") for t in ("25", "30"))
+            collapse = f"{'yes' if row['collapse_detected'] else 'no'} / {'yes' if row['collapsed'] else 'no'}"
+            lines.append(f"| {scene['scene']} | {row['variant']} | {row['psnr']:.2f} | {row['ssim']:.4f} | {reach} "
+                         f"| {_fmt(row['seconds_per_iteration'], '.3f')} | {row['iterations']} "
+                         f"| {_fmt(row['blank_psnr'], '.2f')} | {collapse} |")
+    lines += ["", "| scene | best fixed variant | its PSNR (dB) | auto PSNR (dB) | auto − best fixed (dB) |",
+              "| --- | --- | ---: | ---: | ---: |"]
+    for scene in summary["scenes"]:
+        best, auto = scene["best_fixed"] or {}, scene["auto"] or {}
+        lines.append(f"| {scene['scene']} | {best.get('variant', '—')} | {_fmt(best.get('psnr'), '.2f')} "
+                     f"| {_fmt(auto.get('psnr'), '.2f')} | {_fmt(auto.get('gap_to_best_fixed_db'), '+.2f')} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_suite(summary: dict, path: Path) -> None:
+    """Final test PSNR per scene and variant (bars), the blank image's PSNR per scene (a black
+    line across its bars); a collapsed variant's bar is hatched."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    scenes = summary["scenes"]
+    names = [v["name"] for v in summary["variants"]]
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    width = 0.8 / max(1, len(names))
+    figure, axis = plt.subplots(figsize=(max(7.0, 1.3 * len(scenes) + 3), 4.5), dpi=120)
+    for k, name in enumerate(names):
+        for i, scene in enumerate(scenes):
+            row = next((r for r in scene["variants"] if r["variant"] == name), None)
+            if row is not None:
+                axis.bar(i - 0.4 + width * (k + 0.5), row["psnr"], width, color=colours[k % len(colours)],
+                         hatch="//" if row["collapsed"] else None)
+    for i, scene in enumerate(scenes):
+        if scene["blank_psnr"] is not None:
+            axis.hlines(scene["blank_psnr"], i - 0.45, i + 0.45, color="black", linewidth=1.5)
+    handles = [Patch(color=colours[k % len(colours)], label=name) for k, name in enumerate(names)]
+    handles += [Patch(facecolor="white", edgecolor="black", hatch="//", label="collapsed"),
+                Line2D([], [], color="black", linewidth=1.5, label="blank image")]
+    axis.set_xticks(range(len(scenes)))
+    axis.set_xticklabels([scene["scene"] for scene in scenes], rotation=20, ha="right")
+    axis.set_ylabel("final test PSNR (dB)")
+    axis.set_title("Final test PSNR per scene and variant, at equal budget")
+    axis.grid(axis="y", alpha=0.3)
+    axis.legend(handles=handles, fontsize="small", loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    figure.tight_layout()
+    figure.savefig(path)
+    plt.close(figure)
