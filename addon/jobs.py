@@ -33,6 +33,7 @@ class JobStatus:
     psnr: float | None = None
     iteration: int | None = None
     error: str = ""  # failed: the tail of the process's output
+    warning: str = ""  # something the user must see although the job goes on (a collapse and its recovery)
     extra: dict = field(default_factory=dict)
 
 
@@ -209,12 +210,20 @@ class TrainingJob(_Job):
         detail = f"iteration {iteration}" + (f" of {target}" if target and not budget else "")
         if psnr is not None:
             detail += f", PSNR {psnr:.2f} dB" + (" (validation)" if vals else " (batch)")
+        # The trainer's collapse guard: what it found and what it did (a restart, or the end).
+        collapses = [e for e in events if e.get("event") == "collapse"]
+        warning = (f"Collapsed at iteration {collapses[-1].get('iteration')}: {collapses[-1].get('reason', '')}; "
+                   f"{collapses[-1].get('action', '')}" if collapses else "")
         if finished:
             reason = done[-1].get("reason")
+            if reason == "collapsed":
+                return JobStatus("failed", fraction, detail, None, psnr, iteration,
+                                 error=f"The model collapsed to the blank image. {warning}",
+                                 extra={"reason": reason, "val_psnr": done[-1].get("val_psnr")})
             state = "cancelled" if reason == "cancelled" else "done"
             return JobStatus(state, 1.0 if state == "done" else fraction, detail, None, psnr, iteration,
-                             extra={"reason": reason, "val_psnr": done[-1].get("val_psnr")})
-        return JobStatus("running", fraction, detail, seconds_left, psnr, iteration)
+                             warning=warning, extra={"reason": reason, "val_psnr": done[-1].get("val_psnr")})
+        return JobStatus("running", fraction, detail, seconds_left, psnr, iteration, warning=warning)
 
 
 class DatasetJob(_Job):

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import textwrap
+
 import bpy
 
 from . import operators
@@ -18,10 +20,15 @@ def _draw_status(layout, state, idle_text: str) -> None:
     elif state.state == "failed":
         box = layout.box()
         box.label(text="Failed:", icon="ERROR")
-        for line in state.error.splitlines()[-6:]:
-            box.label(text=line[:100])
+        lines = [wrapped for line in state.error.splitlines() for wrapped in textwrap.wrap(line, 60) or [""]]
+        for line in lines[-8:]:
+            box.label(text=line)
     else:
         layout.label(text=f"{state.state.capitalize()}: {state.detail}", icon="CHECKMARK" if state.state == "done" else "PAUSE")
+    if state.warning and state.state != "failed":
+        box = layout.box()
+        for number, line in enumerate(textwrap.wrap(state.warning, 60)[:6]):
+            box.label(text=line, icon="ERROR" if number == 0 else "NONE")
 
 
 class _NerfPanel:

@@ -94,8 +94,11 @@ class GridField(nn.Module):
         ratio = (config.resolution / config.initial_resolution) ** (done / len(config.upsample_iterations))
         return round(config.initial_resolution * ratio)
 
-    def resize(self, resolution: int) -> None:
-        vertices = vertices_for(resolution, self.extent)
+    def vertices_at(self, resolution: int) -> Vertices:
+        """The vertices on each axis for ``resolution`` along the box's longest side."""
+        return vertices_for(resolution, self.extent)
+
+    def resize(self, vertices: Vertices) -> None:
         self.density_grid.resize(vertices)
         self.appearance_grid.resize(vertices)
 

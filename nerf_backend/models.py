@@ -16,6 +16,7 @@ from torch import Tensor, nn
 from .config import TrainConfig
 from .dataset import SceneBounds
 from .fields import NerfField
+from .grid_encodings import Vertices
 from .grid_field import GridField
 from .occupancy import OccupancyGrid
 from .occupancy_prior import OccupancyPrior
@@ -103,8 +104,8 @@ class GridModel(nn.Module):
         threshold = min(self.density_threshold, float(density.mean()))
         self.occupancy.update_from_vertex_density(density, threshold, self.allowed)
 
-    def resize(self, resolution: int) -> None:
-        self.field.resize(resolution)
+    def resize(self, vertices: Vertices) -> None:
+        self.field.resize(vertices)
         self._fit_sampling_to_grid()
 
     def before_step(self, iteration: int) -> bool:
@@ -113,7 +114,7 @@ class GridModel(nn.Module):
         config = self.config
         resized = False
         if self.field.resolution_after(iteration) != self.field.resolution:
-            self.resize(self.field.resolution_after(iteration))
+            self.resize(self.field.vertices_at(self.field.resolution_after(iteration)))
             self.update_occupancy()
             resized = True
         if iteration >= config.occupancy_warmup and iteration % config.occupancy_every == 0:
@@ -121,10 +122,11 @@ class GridModel(nn.Module):
         return resized
 
     def match_state(self, state: dict) -> None:
-        """Take the resolution a checkpoint was saved at, so its tensors load."""
-        resolution = max(max(state[f"field.density_grid.planes.{i}"].shape[-2:]) for i in range(3))
-        if resolution != self.field.resolution:
-            self.resize(resolution)
+        """Take the vertices a checkpoint was saved with, so its tensors load (also cubic
+        grids from before each axis had its own count)."""
+        (nx, ny), nz = state["field.density_grid.planes.0"].shape[-2:], state["field.density_grid.planes.1"].shape[-1]
+        if (nx, ny, nz) != self.field.vertices:
+            self.resize((nx, ny, nz))
 
     def _march_edges(self, t_near: Tensor, t_far: Tensor, offset: Tensor, first: int, count: int) -> Tensor:
         """Edges ``[R, count+1]`` of march steps ``first .. first+count`` of each ray: fixed

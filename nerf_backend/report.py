@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import html
 import json
+import math
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -144,6 +145,12 @@ def _plot_training(events: list[dict], path: Path) -> bool:
         psnr_axis.plot([e[key] for e in train], [e["psnr"] for e in train], linewidth=0.8, label="training batch")
         if val:
             psnr_axis.plot([e[key] for e in val], [e["psnr"] for e in val], marker="o", label="validation view")
+            blank = [e for e in val if e.get("blank_psnr") is not None and math.isfinite(e["blank_psnr"])]
+            if blank:  # what an empty model scores on the same views: the collapse guard's floor
+                psnr_axis.plot([e[key] for e in blank], [e["blank_psnr"] for e in blank], linestyle="--",
+                               color="grey", linewidth=0.8, label="blank image, same view")
+        for event in (e for e in events if e.get("event") == "collapse" and key in e):
+            psnr_axis.axvline(event[key], color="#c0392b", linewidth=0.8)  # where the guard found a collapse
         psnr_axis.set_ylabel("PSNR (dB)")
         psnr_axis.legend(fontsize=8)
         for axis in (loss_axis, psnr_axis):
@@ -174,6 +181,7 @@ th.sortable { cursor: pointer; color: #0645ad; } .num { text-align: right; font-
 img.wide { width: 100%; max-width: 900px; display: block; }
 img.thumb { width: 128px; height: auto; image-rendering: pixelated; border: 1px solid #ddd; display: block; }
 figure { margin: 0; } figcaption { font-size: 0.75em; color: #555; }
+.alert { background: #fdecea; border-left: 4px solid #c0392b; padding: 0.5em 1em; margin: 1em 0; }
 """
 
 SORT_SCRIPT = """
@@ -246,6 +254,7 @@ def _headline(result: Result) -> str:
                   ("training time", _fmt(last.get("elapsed_s"), ".1f") + " s"), ("device", config.get("device", "—"))]
     out = ['<div class="headline">'] + [f'<div class="card">{html.escape(k)}<b>{html.escape(v)}</b></div>' for k, v in cards]
     out.append("</div>")
+    out += _collapse_alerts(events)
     notes = [f"{m['views']} {m['split']} views. Background: {m['background']}."]
     if m.get("lpips") is None:
         notes.append(f"LPIPS unavailable: {m.get('lpips_unavailable')}.")
@@ -262,6 +271,17 @@ def _headline(result: Result) -> str:
                        f"</td><td>{html.escape(str(decision.get('reason', '')))}</td></tr>")
         out.append("</table>")
     return "\n".join(out)
+
+
+def _collapse_alerts(events: list[dict]) -> list[str]:
+    """What the collapse guard found during training and what the trainer did about it."""
+    alerts = []
+    for event in (e for e in events if e.get("event") == "collapse"):
+        verdict = "The run failed: " if event.get("final") else "The run collapsed and was restarted: "
+        alerts.append(f'<div class="alert"><b>{html.escape(verdict)}</b>'
+                      f'{html.escape(str(event.get("reason", "")))}. What the trainer did: '
+                      f'{html.escape(str(event.get("action", "")))}.</div>')
+    return alerts
 
 
 def _views_table(page: _Page, result: Result, prefix: str, split) -> str:

@@ -317,7 +317,8 @@ def _train_locked(run: RunFolder, plan: _RunPlan, val_split: DatasetSplit | None
     guard = CollapseGuard(val_split, ray_bounds, config.collapse_margin_db)
 
     def report_collapse(verdict: Verdict, action: str, final: bool) -> None:
-        run.log_event("collapse", iteration=verdict.iteration, val_psnr=verdict.psnr, blank_psnr=verdict.blank_psnr,
+        run.log_event("collapse", iteration=verdict.iteration, elapsed_s=train_seconds, val_psnr=verdict.psnr,
+                      blank_psnr=verdict.blank_psnr,
                       margin_db=verdict.margin_db, views=list(verdict.views), action=action,
                       reason=verdict.describe(), final=final)
         progress.note(f"collapse: {verdict.describe()}; {action}")

@@ -25,6 +25,7 @@ import textwrap
 import numpy as np
 import pytest
 
+from addon.jobs import TrainingJob
 from conftest import run_python
 from nerf_backend.dataset import load_split
 from nerf_backend.metrics import psnr
@@ -152,3 +153,8 @@ def test_the_guard_stops_a_model_that_cannot_learn(bright_object_datasets, tmp_p
     recovery = config["decisions"]["collapse_recovery"]
     assert recovery["at_iteration"] == 20 and "half the learning rate" in recovery["reason"]
     assert config["config"]["learning_rate"] == 0.0  # halved from 0: this model cannot be saved
+    # The add-on's panel reads the same events: a failed job that says why.
+    status = TrainingJob(run).poll()
+    assert status.state == "failed"
+    assert status.error.startswith("The model collapsed to the blank image. Collapsed at iteration 40")
+    assert "stopped: it had already been restarted once" in status.error

@@ -168,12 +168,12 @@ def _solid_grid_model() -> GridModel:
     """A fast model whose random grids hold dense blobs and empty space, occupancy updated."""
     torch.manual_seed(3)
     model = GridModel(PRESETS["fast"], BOX)
-    resolution = model.field.resolution
-    model.resize(5)  # random values on a coarse grid, interpolated up: smooth blobs
+    vertices = model.field.vertices
+    model.resize((5, 5, 5))  # random values on a coarse grid, interpolated up: smooth blobs
     with torch.no_grad():
         for parameter in model.field.density_grid.parameters():
             parameter.normal_(0.0, 1.4)
-    model.resize(resolution)
+    model.resize(vertices)
     model.update_occupancy()
     assert 0.05 < model.occupancy.occupied_fraction < 0.95  # both kinds of space present
     return model.eval()
