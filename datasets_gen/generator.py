@@ -3,9 +3,10 @@
 Both command lines (`python -m datasets_gen`, `blender -b --python datasets_gen/generate.py`)
 and the add-on call `run` (the add-on through `generate_dataset`).  Order of work: validate,
 check the output folder, load the scene, check it (refusing before anything is written),
-fit it into the protocol's frame, force the protocol's render settings (undone afterwards),
-then render every view (each file written atomically, already-verified views skipped with
---resume, other shards' views skipped with --shard) and write the JSON files last, atomically.
+fit it into the protocol's frame, voxelise it (the occupancy prior, written before the views),
+force the protocol's render settings (undone afterwards), then render every view (each file
+written atomically, already-verified views skipped with --resume, other shards' views skipped
+with --shard) and write the JSON files last, atomically.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from .intrinsics import CameraSettings, Intrinsics, ray_length_factors
 from .materials import classify_material
 from .options import SPLITS, DatasetGenError, GeneratorOptions, Shard, validate_camera
 from .output_dir import (
+    PRIOR_NAME,
     PROFILE_NAME,
     check_output_dir,
     finish_run,
@@ -47,6 +49,7 @@ from .output_dir import (
     transforms_name,
     view_paths,
     write_json_atomic,
+    write_npz_atomic,
 )
 from .png_check import PngError, check_rgba8
 from .progress import ViewProgress
@@ -195,11 +198,13 @@ def _run_in_blender(
 
     survey = _survey(options, scene, journal)
     if options.check_only:
+        _occupancy_prior(survey)  # its record only: the profile printed is the one a render writes
         print(json.dumps(survey.profile, indent=2))
         return survey.profile
 
     settings = settings_record(options, survey.camera, survey.source)
     _require_consistent_folder(out_dir, options, settings, bpy.app.version_string)
+    prior = _occupancy_prior(survey)
     depth_splits = [split for split in SPLITS if options.wants_depth_normals(split) and options.views(split)]
     device = configure_render(
         survey.scene, survey.view_layer, journal, camera=survey.camera, samples=options.samples,
@@ -213,6 +218,7 @@ def _run_in_blender(
         "generator": GENERATOR_NAME, "settings": settings, "blender_version": bpy.app.version_string,
         "shard": [options.shard.index, options.shard.count] if options.shard else None,
     })
+    _write_occupancy_prior(out_dir, prior)
     setup_seconds = time.perf_counter() - started
     documents, timing = _render_views(options, survey, out_dir, depth_splits, generator, progress)
 
@@ -287,6 +293,47 @@ def _survey(options: GeneratorOptions, scene: Any, journal: Any) -> _Survey:
     )
     return _Survey(scene, view_layer, source, camera, intrinsics, outcome, file_settings, frame, frame_record,
                    profile)
+
+
+def _occupancy_prior(survey: _Survey) -> Optional[dict[str, Any]]:
+    """Voxelise the scene into the profile's `occupancy_prior`; return the npz arrays (None without).
+
+    Debian's Blender has no numpy: its datasets record why they have no prior instead.
+    """
+    try:
+        import numpy  # noqa: F401
+    except ImportError:
+        return _no_occupancy_prior(survey.profile, "this Blender's Python has no numpy")
+    from .scene_occupancy import build_occupancy_prior
+
+    started = time.perf_counter()
+    try:
+        record, arrays = build_occupancy_prior(survey.view_layer, survey.frame)
+    except ValueError as error:
+        return _no_occupancy_prior(survey.profile, f"nothing could be voxelised: {error}")
+    survey.profile["occupancy_prior"] = record
+    print(f"{GENERATOR_NAME}: occupancy prior: {'x'.join(map(str, record['resolution']))} cells, surface "
+          f"{record['surface_fraction']:.1%}, solid {record['solid_fraction']:.1%} "
+          f"({time.perf_counter() - started:.1f} s)", file=sys.stderr)
+    return arrays
+
+
+def _no_occupancy_prior(profile: dict[str, Any], reason: str) -> None:
+    profile["occupancy_prior"] = None
+    profile["occupancy_prior_reason"] = reason
+    print(f"{GENERATOR_NAME}: note: no occupancy prior: {reason}", file=sys.stderr)
+
+
+def _write_occupancy_prior(out_dir: str, arrays: Optional[dict[str, Any]]) -> None:
+    """Write the prior atomically (each shard writes the same one); remove an earlier run's when there is none."""
+    path = os.path.join(out_dir, PRIOR_NAME)
+    try:
+        if arrays is not None:
+            write_npz_atomic(path, arrays)
+        elif os.path.isfile(path):
+            os.remove(path)
+    except OSError as error:
+        raise DatasetGenError(f"cannot write {path}: {error.strerror}") from None
 
 
 def _render_views(

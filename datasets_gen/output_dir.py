@@ -22,6 +22,7 @@ from typing import Any, Iterable, Optional
 from .options import SPLITS, DatasetGenError, GeneratorOptions, Shard
 
 PROFILE_NAME = "scene_profile.json"
+PRIOR_NAME = "occupancy_prior.npz"  # voxelised geometry, named in the profile (scene_occupancy)
 DATASET_JSON_NAMES = tuple(f"transforms_{split}.json" for split in SPLITS) + (PROFILE_NAME,)
 PROGRESS_PREFIX = ".datasets_gen_progress"
 _VIEW_FILE = re.compile(r"r_(\d+)(\.png|_depth\.exr|_normal\.exr)")
@@ -232,6 +233,25 @@ def write_json_atomic(path: str, document: Any) -> None:
         with open(temporary, "w", encoding="utf-8") as handle:
             json.dump(document, handle, indent=2)
             handle.write("\n")
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    finally:
+        if os.path.exists(temporary):
+            os.remove(temporary)
+
+
+def write_npz_atomic(path: str, arrays: dict[str, Any]) -> None:
+    """numpy.savez_compressed to a temporary sibling, flushed to disk, then os.replace'd into `path`.
+
+    numpy is imported here, not at the top: Blender builds without numpy never call this.
+    """
+    import numpy
+
+    temporary = temporary_path(path)
+    try:
+        with open(temporary, "wb") as handle:  # a handle: given a name, savez appends ".npz"
+            numpy.savez_compressed(handle, **arrays)
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(temporary, path)

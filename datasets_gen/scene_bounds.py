@@ -67,7 +67,8 @@ def reveal_render_visible(scene: "bpy.types.Scene", view_layer: "bpy.types.ViewL
     """Make what renders also evaluate in the viewport depsgraph (undone by the journal).
 
     Objects disabled in viewports or hidden with H are not evaluated at all; collections can
-    be disabled in viewports; modifiers can differ between viewport and render.
+    be disabled in viewports; modifiers can differ between viewport and render, and so can
+    subdivision levels, particle amounts and the scene's Simplify settings.
     """
     def walk(layer_collection: "bpy.types.LayerCollection") -> None:
         collection = layer_collection.collection
@@ -92,7 +93,25 @@ def reveal_render_visible(scene: "bpy.types.Scene", view_layer: "bpy.types.ViewL
         for modifier in obj.modifiers:
             if modifier.show_viewport != modifier.show_render:
                 journal.set(modifier, "show_viewport", modifier.show_render)
+            _render_amounts(modifier, journal)
+    if scene.render.use_simplify:
+        journal.set(scene.render, "simplify_subdivision", scene.render.simplify_subdivision_render)
+        journal.set(scene.render, "simplify_child_particles", scene.render.simplify_child_particles_render)
     view_layer.update()
+
+
+def _render_amounts(modifier: "bpy.types.Modifier", journal: SettingsJournal) -> None:
+    """Evaluate a modifier's render amount (subdivision levels, particle counts), not its viewport one.
+
+    A surface subdivided only for render lies inside its cage: the occupancy prior must see it.
+    """
+    if modifier.type in ("SUBSURF", "MULTIRES"):
+        journal.set(modifier, "levels", modifier.render_levels)
+    if modifier.type == "PARTICLE_SYSTEM" and modifier.show_render:
+        settings = modifier.particle_system.settings
+        journal.set(settings, "display_percentage", 100)
+        for display_children in ("child_percent", "child_nbr"):  # Blender 5 / 3.4 spelling
+            journal.set_if_present(settings, display_children, settings.rendered_child_count)
 
 
 def _camera_invisible_objects(view_layer: "bpy.types.ViewLayer") -> set[str]:

@@ -31,7 +31,8 @@ def dataset_files(dataset: Path) -> list[str]:
 
 
 def assert_same_dataset(produced: Path, reference: Path) -> None:
-    """Same files; identical JSON; identical PNG pixels; EXRs equal to float round-off.
+    """Same files; identical JSON; identical PNG pixels; EXRs equal to float round-off; the
+    same occupancy prior (arrays equal; the zip's own timestamps may differ).
 
     Cycles' beauty pass is bit-identical for a fixed seed; its normal pass sums samples with
     atomic float adds whose order varies between runs, so normals may differ by ~1e-7.  PNG files
@@ -49,6 +50,11 @@ def assert_same_dataset(produced: Path, reference: Path) -> None:
             assert a.keys() == b.keys()
             for channel in a:
                 np.testing.assert_allclose(a[channel], b[channel], atol=1e-6, err_msg=f"{name} {channel}")
+        elif name.endswith(".npz"):
+            with np.load(produced / name) as a, np.load(reference / name) as b:
+                assert a.files == b.files, name
+                for key in a.files:
+                    np.testing.assert_array_equal(a[key], b[key], err_msg=f"{name} {key}")
 
 
 @pytest.fixture(scope="module")
@@ -56,6 +62,7 @@ def reference_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("reference") / "dataset"
     result = run_module(*RUN_ARGS, "--out", str(out))
     assert result.returncode == 0, result.stderr
+    assert (out / "occupancy_prior.npz").is_file()
     return out
 
 
@@ -103,6 +110,11 @@ def test_shards_merged_equal_an_unsharded_run(reference_run: Path, tmp_path: Pat
     mismatch = run_module(*[arg if arg != "3" else "4" for arg in RUN_ARGS], "--out", str(out), "--shard", "0/2")
     assert mismatch.returncode == 2 and "seed 3 there vs 4 now" in mismatch.stderr
     assert run_module(*RUN_ARGS, "--out", str(out), "--shard", "0/2").returncode == 0
+    prior = out / "occupancy_prior.npz"
+    prior.rename(out / "aside.npz")  # both shards wrote the same prior; the merge needs it there
+    missing = run_module("--merge", str(out))
+    assert missing.returncode == 2 and "occupancy_prior.npz is missing" in missing.stderr
+    (out / "aside.npz").rename(prior)
     merged = run_module("--merge", str(out))
     assert merged.returncode == 0, merged.stderr
     assert_same_dataset(out, reference_run)

@@ -16,6 +16,10 @@ for a kind of real-world file the generator must handle (see tests/test_datasets
                             an excluded collection instanced by an Empty
     markers.blend           three small emissive spheres (red, green, blue) at MARKERS
     sphere.blend            a fine smooth-shaded UV sphere of radius 2 at (3, -2, 1)
+    occupancy.blend         what the occupancy prior must see beyond plain meshes: a cube subdivided
+                            only for render (viewport level 0), a ball with particle hair, a ball
+                            with true displacement, one whose displacement scale is linked (unreadable),
+                            and hair curves (a CURVES object, which to_mesh cannot measure)
 """
 
 from __future__ import annotations
@@ -245,6 +249,51 @@ def sphere(out_dir: str) -> None:
     save(out_dir, "sphere.blend")
 
 
+def occupancy(out_dir: str) -> None:
+    scene = reset()
+    world(scene)
+    sun(scene)
+    grey = material("grey", (0.7, 0.7, 0.7))
+    cage = mesh_object(scene, "Subdivided cage", "cube", 2.0)
+    cage.data.materials.append(grey)
+    subdivision = cage.modifiers.new("Subdivision", "SUBSURF")
+    subdivision.levels, subdivision.render_levels = 0, 3  # the render shrinks well inside the cage
+    hairy = mesh_object(scene, "Hairy", "small_sphere", 0.4, (2.5, 0.0, 0.0))
+    hairy.data.materials.append(grey)
+    hairy.modifiers.new("Fur", "PARTICLE_SYSTEM")
+    fur = hairy.particle_systems[0].settings
+    fur.type, fur.count, fur.hair_length = "HAIR", 50, 0.5
+    displaced = mesh_object(scene, "Displaced", "small_sphere", 0.4, (-2.5, 0.0, 0.0))
+    displaced.data.materials.append(displacing_material("bumpy", linked_scale=False))
+    unreadable = mesh_object(scene, "Unreadable", "small_sphere", 0.3, (0.0, 2.5, 0.0))
+    unreadable.data.materials.append(displacing_material("unreadable", linked_scale=True))
+    curves = bpy.data.hair_curves.new("Strands")
+    curves.add_curves([2, 2, 2])
+    for index, point in enumerate(curves.points):
+        point.position = (0.1 * (index // 2), 0.0, float(index % 2))
+        point.radius = 0.01
+    strands = bpy.data.objects.new("Strands", curves)
+    strands.location = (0.0, -2.5, -0.5)
+    scene.collection.objects.link(strands)
+    save(out_dir, "occupancy.blend")
+
+
+def displacing_material(name: str, linked_scale: bool) -> bpy.types.Material:
+    """Cycles true displacement by a noise texture; its Displacement node's Scale 0.3, or linked."""
+    mat = material(name, (0.6, 0.5, 0.4))
+    mat.displacement_method = "DISPLACEMENT"
+    nodes, links = mat.node_tree.nodes, mat.node_tree.links
+    displacement = nodes.new("ShaderNodeDisplacement")
+    displacement.inputs["Scale"].default_value = 0.3
+    noise = nodes.new("ShaderNodeTexNoise")
+    links.new(noise.outputs["Fac"], displacement.inputs["Height"])
+    if linked_scale:
+        links.new(nodes.new("ShaderNodeValue").outputs[0], displacement.inputs["Scale"])
+    output = next(n for n in nodes if n.type == "OUTPUT_MATERIAL")
+    links.new(displacement.outputs[0], output.inputs["Displacement"])
+    return mat
+
+
 BUILDERS = {
     "missing_texture": missing_texture,
     "missing_library": missing_library,
@@ -255,6 +304,7 @@ BUILDERS = {
     "eevee_filmic": eevee_filmic,
     "markers": markers,
     "sphere": sphere,
+    "occupancy": occupancy,
 }
 
 
