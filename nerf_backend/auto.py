@@ -26,6 +26,7 @@ import torch
 
 from .config import TrainConfig
 from .dataset import DatasetSplit, SceneBounds
+from .grid_field import vertices_for
 
 MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
 # Which of the prior's fills auto uses (measured with bench: see the README).
@@ -40,53 +41,76 @@ def pixel_footprint(split: DatasetSplit, box: SceneBounds) -> float:
     return float(distances.mean()) / focal
 
 
-def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profile: dict | None) -> tuple[TrainConfig, dict]:
-    """``base`` (the fast preset) adjusted to the scene, and the decisions with reasons."""
+def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profile: dict | None,
+                user_set: frozenset[str] = frozenset()) -> tuple[TrainConfig, dict]:
+    """``base`` (the fast preset, with the user's ``--set`` changes) adjusted to the scene,
+    and the decisions with reasons. A setting in ``user_set`` (dotted keys given with
+    ``--set``) is the user's: auto keeps it and records what it would have chosen."""
     decisions: dict[str, dict] = {}
 
-    view_dependent = base.grid.view_dependent
+    def choose(name: str, key: str, chosen, reason: str, **details):
+        if key in user_set:
+            value = _setting(base, key)
+            decisions[name] = {"value": value, **details,
+                               "reason": f"set with --set {key}; auto would choose {chosen!r}: {reason}"}
+            return value
+        decisions[name] = {"value": chosen, **details, "reason": reason}
+        return chosen
+
     if profile is not None and isinstance(profile.get("view_dependent"), bool):
-        view_dependent = profile["view_dependent"]
-        reason = ("the scene has view-dependent materials" if view_dependent
+        dependent = profile["view_dependent"]
+        reason = ("the scene has view-dependent materials" if dependent
                   else "every material is diffuse: colour needs no viewing direction")
     else:
+        dependent = base.grid.view_dependent
         reason = "the dataset does not say whether its materials are view-dependent: keep direction input"
-    decisions["view_dependence"] = {"value": view_dependent, "reason": reason}
+    view_dependent = choose("view_dependence", "grid.view_dependent", dependent, reason)
 
     footprint = pixel_footprint(split, box)
-    extent = max(hi - lo for lo, hi in zip(box.box_min, box.box_max))
+    sides = tuple(hi - lo for lo, hi in zip(box.box_min, box.box_max))
+    extent = max(sides)
     wanted = math.ceil(extent / footprint) + 1
-    resolution = max(MIN_RESOLUTION, min(MAX_RESOLUTION, wanted))
+    clamped = max(MIN_RESOLUTION, min(MAX_RESOLUTION, wanted))
+    vertices = vertices_for(clamped, sides) if base.grid.cubic_cells else (clamped,) * 3
+    resolution = choose(
+        "grid_resolution", "grid.resolution", clamped,
+        (f"a pixel covers {footprint:.4f} units at the scene's centre and the box is {extent:.3f} "
+         f"across: {wanted} vertices along its longest side resolve every pixel"
+         + (f" (clamped to [{MIN_RESOLUTION}, {MAX_RESOLUTION}])" if wanted != clamped else "")
+         + (f"; the other sides get as many as keep the cells cubic: {vertices[0]}×{vertices[1]}×{vertices[2]}"
+            if base.grid.cubic_cells else "")),
+        vertices=list(vertices))
     initial = min(base.grid.initial_resolution, resolution)
-    decisions["grid_resolution"] = {
-        "value": resolution,
-        "reason": (f"a pixel covers {footprint:.4f} units at the scene's centre and the box is {extent:.3f} "
-                   f"across: {wanted} vertices a side resolve every pixel"
-                   + (f" (clamped to [{MIN_RESOLUTION}, {MAX_RESOLUTION}])" if wanted != resolution else "")),
-    }
     schedule = base.grid.upsample_iterations if resolution > initial else ()
 
-    alpha = split.rgba[..., 3]
-    transparent = bool((alpha < 255).any())
-    decisions["background"] = {
-        "value": "random colours, alpha as mask" if transparent else "opaque images: background is scene content",
-        "reason": ("the images have an alpha channel with transparent pixels (transparent film)" if transparent
-                   else "every pixel is opaque, so there is no background to separate"),
-    }
-    prior = PRIOR_KIND if profile is not None and isinstance(profile.get("occupancy_prior"), dict) else "none"
-    decisions["occupancy_prior"] = {
-        "value": prior,
-        "reason": (f"the dataset holds Blender's geometry voxelised ({PRIOR_KIND}): empty space is skipped "
-                   "from the first step" if prior != "none" else
-                   "the dataset has no occupancy prior: empty space is found from the field's own density"),
-    }
+    transparent = bool((split.rgba[..., 3] < 255).any())
+    random_background = choose(
+        "background", "random_background", transparent,
+        ("the images have an alpha channel with transparent pixels (transparent film): random background "
+         "colours, the alpha as mask" if transparent
+         else "every pixel is opaque, so there is no background to separate: background is scene content"))
+
+    has_prior = profile is not None and isinstance(profile.get("occupancy_prior"), dict)
+    prior = choose(
+        "occupancy_prior", "occupancy_prior", PRIOR_KIND if has_prior else "none",
+        (f"the dataset holds Blender's geometry voxelised ({PRIOR_KIND}): empty space is skipped from the first step"
+         if has_prior else "the dataset has no occupancy prior: empty space is found from the field's own density"))
+
     grid = dataclasses.replace(base.grid, resolution=resolution, initial_resolution=initial,
                                upsample_iterations=schedule, view_dependent=view_dependent)
-    config = dataclasses.replace(base, preset="auto", grid=grid, grid_step_ratio=1.0, random_background=transparent,
+    config = dataclasses.replace(base, preset="auto", grid=grid, random_background=random_background,
                                  occupancy_prior=prior)
-    diagonal = math.sqrt(sum((hi - lo) ** 2 for lo, hi in zip(box.box_min, box.box_max)))
+    diagonal = math.sqrt(sum(side ** 2 for side in sides))
     decisions["samples"] = {
-        "value": math.ceil(diagonal / (extent / (resolution - 1))) + 1,
+        "value": math.ceil(diagonal / (extent / (resolution - 1) * config.grid_step_ratio)) + 1,
         "reason": "one march step per grid cell along the box's diagonal; empty cells are skipped",
     }
     return config, decisions
+
+
+def _setting(config: TrainConfig, key: str):
+    """The value of a dotted setting (``grid.resolution``)."""
+    value = config
+    for part in key.split("."):
+        value = getattr(value, part)
+    return value

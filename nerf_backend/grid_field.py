@@ -35,8 +35,10 @@ def vertices_for(resolution: int, extent: tuple[float, float, float]) -> Vertice
 @dataclass(frozen=True)
 class GridFieldConfig:
     # Grid vertices along the box's longest side at the end of training; the other sides get
-    # as many as keep the cells cubic (vertices_for).
+    # as many as keep the cells cubic (vertices_for), or as many as the longest side when
+    # cubic_cells is off (every axis alike, as before per-axis counts).
     resolution: int = 128
+    cubic_cells: bool = True
     # Coarse-to-fine: start at initial_resolution and grow geometrically to `resolution`,
     # one step at each of upsample_iterations (cheap early steps, detail later).
     initial_resolution: int = 128
@@ -64,7 +66,7 @@ class GridField(nn.Module):
         self.register_buffer("box_min", torch.tensor(box.box_min, dtype=torch.float32))
         self.register_buffer("box_max", torch.tensor(box.box_max, dtype=torch.float32))
         self.extent = tuple(hi - lo for lo, hi in zip(box.box_min, box.box_max))
-        vertices = vertices_for(config.initial_resolution, self.extent)
+        vertices = self.vertices_at(config.initial_resolution)
         self.density_grid = VectorMatrixGrid(config.density_channels, vertices)
         self.appearance_grid = VectorMatrixGrid(config.appearance_channels, vertices)
         self.appearance_basis = nn.Linear(self.appearance_grid.out_dims, config.appearance_dims, bias=False)
@@ -96,7 +98,7 @@ class GridField(nn.Module):
 
     def vertices_at(self, resolution: int) -> Vertices:
         """The vertices on each axis for ``resolution`` along the box's longest side."""
-        return vertices_for(resolution, self.extent)
+        return vertices_for(resolution, self.extent) if self.config.cubic_cells else (resolution,) * 3
 
     def resize(self, vertices: Vertices) -> None:
         self.density_grid.resize(vertices)

@@ -245,7 +245,8 @@ def _plan_run(run: RunFolder, dataset: Path, train_split: DatasetSplit, options:
     if options.resume:
         decisions = stored.get("decisions", decisions)
     elif config.preset == "auto":
-        config, auto_decisions = auto_config(config, train_split, ray_bounds.box, load_scene_profile(dataset))
+        user_set = frozenset(assignment.partition("=")[0] for assignment in options.overrides)
+        config, auto_decisions = auto_config(config, train_split, ray_bounds.box, load_scene_profile(dataset), user_set)
         decisions.update(auto_decisions)
     return _RunPlan(dataset, config, seed, max_seconds, device, train_split, ray_bounds,
                     _occupancy_prior(dataset, config), decisions)

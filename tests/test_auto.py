@@ -1,0 +1,55 @@
+"""The auto preset's decisions, from a scene profile and the training images (no rendering)."""
+
+from __future__ import annotations
+
+import torch
+
+from nerf_backend.auto import auto_config
+from nerf_backend.cameras import Intrinsics
+from nerf_backend.config import PRESETS, with_overrides
+from nerf_backend.dataset import DatasetSplit, SceneBounds
+
+BOX = SceneBounds((-1.0, -1.0, -0.25), (1.0, 1.0, 0.25))
+
+
+def _split(opaque: bool = False) -> DatasetSplit:
+    """Four 100×100 views at radius 4 with a transparent border unless ``opaque``."""
+    rgba = torch.full((4, 100, 100, 4), 255, dtype=torch.uint8)
+    if not opaque:
+        rgba[:, :10, :, 3] = 0
+    poses = torch.eye(4).repeat(4, 1, 1)
+    poses[:, 2, 3] = 4.0
+    return DatasetSplit("train", Intrinsics(100, 100, 138.9, 138.9, 50.0, 50.0), poses, rgba, [])
+
+
+PROFILE = {"view_dependent": False, "occupancy_prior": {"file": "occupancy_prior.npz"}}
+
+
+def test_auto_reads_the_scene():
+    config, decisions = auto_config(PRESETS["auto"], _split(), BOX, PROFILE)
+    assert config.grid.view_dependent is False and "diffuse" in decisions["view_dependence"]["reason"]
+    assert config.occupancy_prior == "surface" and "first step" in decisions["occupancy_prior"]["reason"]
+    assert config.random_background is True
+    # A pixel covers 4 / 138.9 = 0.0288 units: 71 vertices along the box's 2-unit side, and
+    # cubic cells make the 0.5-unit side 19 (0.5 / (2 / 70) = 17.5, rounded, plus one).
+    assert config.grid.resolution == 71
+    assert decisions["grid_resolution"]["vertices"] == [71, 71, 19]
+
+
+def test_auto_without_a_profile_keeps_the_safe_choices():
+    config, decisions = auto_config(PRESETS["auto"], _split(opaque=True), BOX, None)
+    assert config.grid.view_dependent is True
+    assert config.occupancy_prior == "none" and "no occupancy prior" in decisions["occupancy_prior"]["reason"]
+    assert config.random_background is False
+
+
+def test_settings_given_with_set_are_the_users():
+    assignments = ["occupancy_prior=none", "grid.resolution=40", "grid.view_dependent=true"]
+    base = with_overrides(PRESETS["auto"], assignments)
+    user_set = frozenset(a.partition("=")[0] for a in assignments)
+    config, decisions = auto_config(base, _split(), BOX, PROFILE, user_set)
+    assert (config.occupancy_prior, config.grid.resolution, config.grid.view_dependent) == ("none", 40, True)
+    assert decisions["occupancy_prior"]["reason"].startswith("set with --set occupancy_prior; auto would choose 'surface'")
+    assert decisions["grid_resolution"]["value"] == 40
+    # What was not set is still decided.
+    assert config.random_background is True and "random background" in decisions["background"]["reason"]
