@@ -30,7 +30,7 @@ from .grid_field import vertices_for
 
 MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
 # Which of the prior's fills auto uses (measured with bench: see the README).
-PRIOR_KIND = "surface"
+PRIOR_KIND = "solid"
 
 
 def pixel_footprint(split: DatasetSplit, box: SceneBounds) -> float:

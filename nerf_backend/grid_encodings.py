@@ -83,19 +83,19 @@ class VectorMatrixGrid(nn.Module):
 
     @torch.no_grad()
     def dense_sum(self) -> Tensor:
-        """The sum of all features at the grid's vertices, ``[Nx, Ny, Nz]``, without holding
-        every channel's volume: each mode is one matrix product ``[Na·Nb, C] @ [C, Nc]``, so a
-        256³ grid needs 64 MB, not gigabytes."""
-        total = None
-        n = self.vertices
-        for ((a, b), c), plane, line in zip(_MODES, self.planes, self.lines):
-            p = plane[0].reshape(self.channels, n[a] * n[b])  # [C, a·b]
-            l = line[0, :, :, 0]  # [C, line]
-            full = (p.T @ l).view(n[a], n[b], n[c])
-            order = [a, b, c]
-            full = full.permute(*[order.index(axis) for axis in range(3)])
-            total = full if total is None else total + full
-        return total
+        """The sum of all features at the grid's vertices, ``[Nz, Ny, Nx]`` (z, y, x: the
+        layout ``grid_sample`` reads volumes in), without holding every channel's volume:
+        each mode is one matrix product of ``C``-long rows, accumulated in place, so a 256³
+        grid needs 64 MB, not gigabytes, and no volume-sized copy is made."""
+        (nx, ny, nz), channels = self.vertices, self.channels
+        (xy, xz, yz), (z_line, y_line, x_line) = [p[0] for p in self.planes], [l[0, :, :, 0] for l in self.lines]
+        # (y, z) plane × x line: V[z, y, x] = Σ_c P[c, y, z] L[c, x]
+        volume = (yz.permute(2, 1, 0).reshape(nz * ny, channels) @ x_line).view(nz, ny, nx)
+        # (x, y) plane × z line: V[z, (y, x)] += Σ_c L[c, z] P[c, x, y]
+        volume.view(nz, ny * nx).addmm_(z_line.T, xy.transpose(1, 2).reshape(channels, ny * nx))
+        # (x, z) plane × y line: V[z, y, x] += Σ_c L[c, y] P[c, x, z], one product per z
+        volume.baddbmm_(y_line.T.expand(nz, ny, channels), xz.permute(2, 0, 1))
+        return volume
 
 
 def _as_vertices(vertices: Vertices | int) -> Vertices:

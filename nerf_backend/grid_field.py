@@ -127,7 +127,7 @@ class GridField(nn.Module):
         for ``grid_sample``. Each grid component is bilinear × linear, i.e. trilinear, so a
         trilinear read of this volume equals the factorised grid's value: one 1-channel
         lookup instead of six many-channel ones (what inference uses)."""
-        return self.density_grid.dense_sum().permute(2, 1, 0)[None, None].contiguous()
+        return self.density_grid.dense_sum()[None, None]
 
     def density_from_volume(self, volume: Tensor, x: Tensor) -> Tensor:
         """``density(x)`` read from ``density_volume()``'s result."""
@@ -139,4 +139,4 @@ class GridField(nn.Module):
     def vertex_density(self) -> Tensor:
         """Density at every grid vertex ``[Nx, Ny, Nz]``: within each grid cell the
         density's pre-activation is trilinear, so these bound the density in the cell."""
-        return self.density_from_features(self.density_grid.dense_sum())
+        return self.density_from_features(self.density_grid.dense_sum().permute(2, 1, 0))

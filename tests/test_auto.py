@@ -28,7 +28,7 @@ PROFILE = {"view_dependent": False, "occupancy_prior": {"file": "occupancy_prior
 def test_auto_reads_the_scene():
     config, decisions = auto_config(PRESETS["auto"], _split(), BOX, PROFILE)
     assert config.grid.view_dependent is False and "diffuse" in decisions["view_dependence"]["reason"]
-    assert config.occupancy_prior == "surface" and "first step" in decisions["occupancy_prior"]["reason"]
+    assert config.occupancy_prior == "solid" and "first step" in decisions["occupancy_prior"]["reason"]
     assert config.random_background is True
     # A pixel covers 4 / 138.9 = 0.0288 units: 71 vertices along the box's 2-unit side, and
     # cubic cells make the 0.5-unit side 19 (0.5 / (2 / 70) = 17.5, rounded, plus one).
@@ -49,7 +49,7 @@ def test_settings_given_with_set_are_the_users():
     user_set = frozenset(a.partition("=")[0] for a in assignments)
     config, decisions = auto_config(base, _split(), BOX, PROFILE, user_set)
     assert (config.occupancy_prior, config.grid.resolution, config.grid.view_dependent) == ("none", 40, True)
-    assert decisions["occupancy_prior"]["reason"].startswith("set with --set occupancy_prior; auto would choose 'surface'")
+    assert decisions["occupancy_prior"]["reason"].startswith("set with --set occupancy_prior; auto would choose 'solid'")
     assert decisions["grid_resolution"]["value"] == 40
     # What was not set is still decided.
     assert config.random_background is True and "random background" in decisions["background"]["reason"]
