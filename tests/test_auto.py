@@ -30,10 +30,12 @@ def test_auto_reads_the_scene():
     assert config.grid.view_dependent is False and "diffuse" in decisions["view_dependence"]["reason"]
     assert config.occupancy_prior == "solid" and "first step" in decisions["occupancy_prior"]["reason"]
     assert config.random_background is True
-    # A pixel covers 4 / 138.9 = 0.0288 units: 71 vertices along the box's 2-unit side, and
-    # cubic cells make the 0.5-unit side 19 (0.5 / (2 / 70) = 17.5, rounded, plus one).
-    assert config.grid.resolution == 71
-    assert decisions["grid_resolution"]["vertices"] == [71, 71, 19]
+    # A pixel covers 4 / 138.9 = 0.0288 units: 71 vertices a side for a 2-unit cube. The box
+    # is 2 × 2 × 0.5, so the cube's 70³ cells become cubic cells of (2·2·0.5)^(1/3) / 70 =
+    # 0.0180 units: 112 vertices along the long sides, 29 along the short one.
+    assert config.grid.resolution == 112
+    assert decisions["grid_resolution"]["vertices"] == [112, 112, 29]
+    assert "343,000 cells of a 71-vertex cube" in decisions["grid_resolution"]["reason"]
 
 
 def test_auto_without_a_profile_keeps_the_safe_choices():
