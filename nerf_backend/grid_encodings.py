@@ -86,7 +86,13 @@ class VectorMatrixGrid(nn.Module):
         """The sum of all features at the grid's vertices, ``[Nz, Ny, Nx]`` (z, y, x: the
         layout ``grid_sample`` reads volumes in), without holding every channel's volume:
         each mode is one matrix product of ``C``-long rows, accumulated in place, so a 256³
-        grid needs 64 MB, not gigabytes, and no volume-sized copy is made."""
+        grid needs 64 MB, not gigabytes, and no volume-sized copy is made. Always float32:
+        under autocast the first product would come out in half precision and the in-place
+        sums could not take it."""
+        with torch.autocast(self.planes[0].device.type, enabled=False):
+            return self._dense_sum_float32()
+
+    def _dense_sum_float32(self) -> Tensor:
         (nx, ny, nz), channels = self.vertices, self.channels
         (xy, xz, yz), (z_line, y_line, x_line) = [p[0] for p in self.planes], [l[0, :, :, 0] for l in self.lines]
         # (y, z) plane × x line: V[z, y, x] = Σ_c P[c, y, z] L[c, x]

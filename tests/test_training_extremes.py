@@ -292,7 +292,8 @@ def test_all_opaque_images_are_scene_content(tiny_demo_dataset, tmp_path):
     run = tmp_path / "run"
     _train(dataset, run, preset="auto", iterations=100)
     config = json.loads((run / "config.json").read_text())
-    assert config["decisions"]["background"]["value"] == "opaque images: background is scene content"
+    background = config["decisions"]["background"]
+    assert background["value"] is False and "every pixel is opaque" in background["reason"]
     assert config["config"]["random_background"] is False
     assert _all_finite(_state(run))
 
