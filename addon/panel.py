@@ -96,7 +96,7 @@ class NERF_PT_results(_NerfPanel, bpy.types.Panel):
         s, layout = context.scene.nerf, self.layout
         layout.operator("nerf.render_test_views", icon="IMAGE_DATA")
         layout.operator("nerf.render_active_camera", icon="CAMERA_DATA")
-        layout.operator("nerf.compare", icon="SPLITSCREEN")
+        layout.operator("nerf.compare", icon="ARROW_LEFTRIGHT")
         if s.compare_lpips:
             col = layout.column(align=True)
             col.label(text=f"PSNR {s.compare_psnr:.2f} dB   SSIM {s.compare_ssim:.4f}")

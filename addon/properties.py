@@ -12,37 +12,43 @@ PRESETS = (
     ("preview", "Preview", "A small NeRF MLP: the paper's method, scaled down"),
     ("paper", "Paper", "The NeRF paper's model and settings: hours to days, GPU advised"),
 )
-DEVICES = (("auto", "Auto", "CUDA, then Apple's MPS, then the CPU"), ("cpu", "CPU", ""),
+DEVICES = (("auto", "Auto", "CUDA, then Apple's MPS, then the CPU"), ("cpu", "CPU", "The CPU"),
            ("cuda", "CUDA", "NVIDIA GPU"), ("mps", "MPS", "Apple GPU"))
 
 
 class NerfSettings(bpy.types.PropertyGroup):
     # Dataset
-    dataset_dir: StringProperty(name="Dataset folder", subtype="DIR_PATH", default="//nerf_dataset")
-    train_views: IntProperty(name="Train", default=100, min=1, max=10000)
-    val_views: IntProperty(name="Val", default=10, min=1, max=10000)
-    test_views: IntProperty(name="Test", default=50, min=1, max=10000)
+    dataset_dir: StringProperty(name="Dataset folder", subtype="DIR_PATH", default="//nerf_dataset",
+                                 description="Where the dataset is written (// is the .blend's folder)")
+    train_views: IntProperty(name="Train", default=100, min=1, max=10000,
+                              description="Training views, at random on the hemisphere (the protocol: 100)")
+    val_views: IntProperty(name="Val", default=10, min=1, max=10000,
+                            description="Validation views, at random on the hemisphere (the protocol: 100)")
+    test_views: IntProperty(name="Test", default=50, min=1, max=10000,
+                             description="Test views, on the protocol's two-turn spiral (the protocol: 200)")
     resolution: IntProperty(name="Resolution", default=100, min=8, max=8192, description="Square image size in pixels")
-    samples: IntProperty(name="Cycles samples", default=64, min=1, max=65536)
-    render_device: EnumProperty(name="Render device", items=(("CPU", "CPU", ""), ("GPU", "GPU", "Cycles' GPU backend")),
-                                default="CPU")
+    samples: IntProperty(name="Cycles samples", default=64, min=1, max=65536,
+                          description="Cycles samples per pixel of every view")
+    render_device: EnumProperty(name="Render device", items=(("CPU", "CPU", "Render on the CPU"), ("GPU", "GPU", "Cycles' GPU backend")),
+                                default="CPU", description="What Cycles renders the views on")
     sphere: BoolProperty(name="Full sphere", default=False, description="Train/val views on the full sphere, not the upper hemisphere")
-    depth_normals: EnumProperty(name="Depth/normals", default="test", items=(
-        ("none", "None", ""), ("test", "Test views", "Ground-truth depth and normals for the test views"),
-        ("all", "All views", "")))
-    seed: IntProperty(name="Seed", default=0, min=0)
+    depth_normals: EnumProperty(name="Depth/normals", default="test", description="Which views also get ground-truth depth and normal EXRs", items=(
+        ("none", "None", "No depth or normals"), ("test", "Test views", "Ground-truth depth and normals for the test views"),
+        ("all", "All views", "Ground-truth depth and normals for every view")))
+    seed: IntProperty(name="Seed", default=0, min=0, description="Seed of the random camera positions (and of training)")
     # Training
-    run_dir: StringProperty(name="Run folder", subtype="DIR_PATH", default="//nerf_run")
-    preset: EnumProperty(name="Preset", items=PRESETS, default="auto")
-    budget_kind: EnumProperty(name="Budget", default="TIME", items=(
+    run_dir: StringProperty(name="Run folder", subtype="DIR_PATH", default="//nerf_run",
+                             description="Where training writes its checkpoint, events and renders")
+    preset: EnumProperty(name="Preset", items=PRESETS, default="auto", description="The model and its training settings")
+    budget_kind: EnumProperty(name="Budget", default="TIME", description="Stop training after a time or a number of steps", items=(
         ("TIME", "Time", "Train for a number of seconds"), ("ITERATIONS", "Iterations", "Train for a number of steps")))
-    budget_seconds: FloatProperty(name="Seconds", default=120.0, min=1.0)
-    budget_iterations: IntProperty(name="Iterations", default=3000, min=1)
-    train_device: EnumProperty(name="Device", items=DEVICES, default="auto")
+    budget_seconds: FloatProperty(name="Seconds", default=120.0, min=1.0, description="Training seconds for the whole run")
+    budget_iterations: IntProperty(name="Iterations", default=3000, min=1, description="Training steps for the whole run")
+    train_device: EnumProperty(name="Device", items=DEVICES, default="auto", description="What the backend trains on")
     # Results of the last comparison (shown in the panel).
-    compare_psnr: FloatProperty(name="PSNR", default=0.0)
-    compare_ssim: FloatProperty(name="SSIM", default=0.0)
-    compare_lpips: StringProperty(name="LPIPS", default="")
+    compare_psnr: FloatProperty(name="PSNR", default=0.0, description="PSNR (dB) of the last comparison with Cycles")
+    compare_ssim: FloatProperty(name="SSIM", default=0.0, description="SSIM of the last comparison with Cycles")
+    compare_lpips: StringProperty(name="LPIPS", default="", description="LPIPS of the last comparison, or why it is unavailable")
 
 
 class NerfPreferences(bpy.types.AddonPreferences):

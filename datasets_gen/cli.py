@@ -13,6 +13,7 @@ file Blender opened.  Bad input exits with status 2 and a single line on stderr 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from typing import Callable, NoReturn, Optional, Sequence
 
@@ -227,7 +228,9 @@ def main(argv: Optional[Sequence[str]] = None, blender_file: str = "") -> int:
     options = options_from_args(args, parser, blender_file)
     from .generator import run
 
-    return _guarded(lambda: run(options, progress=not args.no_progress), options.out_dir, options.check_only)
+    if options.check_only:  # the profile on stdout, for the user who asked (not for the add-on's calls)
+        return _guarded(lambda: print(json.dumps(run(options, progress=False), indent=2)), options.out_dir, True)
+    return _guarded(lambda: run(options, progress=not args.no_progress), options.out_dir)
 
 
 def _suite(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
@@ -248,15 +251,10 @@ def _suite(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
         plan = plan_suite(template, args.suite, args.suite_scene)
     except DatasetGenError as error:
         parser.error(str(error))
-    try:
-        return run_suite(plan, progress=not args.no_progress)
-    except DatasetGenError as error:
-        print(f"{PROG}: error: {error}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted; run the same command again to resume the suite in {args.suite}",
-              file=sys.stderr)
-        return EXIT_INTERRUPTED
+    statuses: list[int] = []
+    failed = _guarded(lambda: statuses.append(run_suite(plan, progress=not args.no_progress)), args.suite,
+                      quiet=True, interrupted=f"run the same command again to resume the suite in {args.suite}")
+    return failed or statuses[0]
 
 
 def _merge(out_dir: str) -> None:
@@ -265,8 +263,9 @@ def _merge(out_dir: str) -> None:
     merge(out_dir)
 
 
-def _guarded(action: Callable[[], object], out_dir: str, quiet: bool = False) -> int:
-    """Run `action`, turning DatasetGenError, OSError and Ctrl-C into one line and an exit status."""
+def _guarded(action: Callable[[], object], out_dir: str, quiet: bool = False, interrupted: str = "") -> int:
+    """Run `action`, turning DatasetGenError, OSError and Ctrl-C into one line and an exit status
+    (`interrupted`: what to say after Ctrl-C, instead of how to resume one dataset)."""
     try:
         action()
     except DatasetGenError as error:
@@ -277,7 +276,8 @@ def _guarded(action: Callable[[], object], out_dir: str, quiet: bool = False) ->
         print(f"{PROG}: error: {where}{error.strerror or error}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
-        print(f"{PROG}: interrupted; {out_dir} holds no complete dataset (rerun with --resume to continue)",
+        print(f"{PROG}: interrupted; "
+              f"{interrupted or f'{out_dir} holds no complete dataset (rerun with --resume to continue)'}",
               file=sys.stderr)
         return EXIT_INTERRUPTED
     if not quiet:

@@ -11,7 +11,6 @@ with --shard) and write the JSON files last, atomically.
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
@@ -163,8 +162,8 @@ def run(options: GeneratorOptions, progress: bool = True, scene: Any = None) -> 
         if error.name not in ("bpy", "bmesh", "mathutils"):
             raise
         raise DatasetGenError(
-            "this Python has no Blender module (bpy): install it (pip install bpy) "
-            "or run `blender -b --python datasets_gen/generate.py -- ...`"
+            f"this Python ({sys.executable}) has no Blender module (bpy): use the project's Python, "
+            ".venv/bin/python (`make setup` creates it), or run `blender -b --python datasets_gen/generate.py -- ...`"
         ) from None
     journal = SettingsJournal()
     try:
@@ -198,8 +197,7 @@ def _run_in_blender(
 
     survey = _survey(options, scene, journal)
     if options.check_only:
-        _occupancy_prior(survey)  # its record only: the profile printed is the one a render writes
-        print(json.dumps(survey.profile, indent=2))
+        _occupancy_prior(survey)  # its record only: the profile returned is the one a render writes
         return survey.profile
 
     settings = settings_record(options, survey.camera, survey.source)

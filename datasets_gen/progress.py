@@ -1,4 +1,5 @@
-"""Progress over rendered views on stderr: a tqdm bar when tqdm is importable, plain lines otherwise.
+"""Progress over rendered views on stderr: a tqdm bar on a terminal when tqdm is importable,
+otherwise a plain line every few seconds (a bar's redraws would fill a log file).
 
 Blender's own Python (e.g. Debian's `blender` binary) usually has no tqdm, and a dataset
 render can take hours, so some progress, with the time left, must always be shown.  The total
@@ -12,6 +13,8 @@ import sys
 import time
 from typing import Any, Optional
 
+LINE_INTERVAL_S = 10.0  # the most often a plain line is written
+
 
 class ViewProgress:
     """Counts rendered views; use as a context manager and call `advance(split, index)` per view."""
@@ -20,9 +23,9 @@ class ViewProgress:
         self._total = total
         self._enabled = enabled
         self._done = 0
-        self._start = time.monotonic()
+        self._start = self._last_line = time.monotonic()
         self._bar: Optional[Any] = None
-        if enabled:
+        if enabled and _is_terminal():
             try:
                 from tqdm import tqdm
             except ImportError:
@@ -38,8 +41,10 @@ class ViewProgress:
         if self._bar is not None:
             self._bar.set_postfix_str(f"{split} r_{index}", refresh=False)
             self._bar.update(1)
-        else:
-            elapsed = time.monotonic() - self._start
+        elif self._done == self._total or time.monotonic() - self._last_line >= LINE_INTERVAL_S \
+                or self._done == 1:
+            self._last_line = time.monotonic()
+            elapsed = self._last_line - self._start
             left = elapsed / self._done * (self._total - self._done)
             print(
                 f"datasets_gen: {self._done}/{self._total} views ({split} r_{index}), "
@@ -58,6 +63,13 @@ class ViewProgress:
 
     def __exit__(self, *exc_info: object) -> None:
         self.close()
+
+
+def _is_terminal() -> bool:
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):
+        return False
 
 
 def _duration(seconds: float) -> str:

@@ -113,8 +113,9 @@ def run_suite(plan: Sequence[SuiteScene], progress: bool = True) -> int:
     try:
         import bpy  # noqa: F401  (every scene renders in this process)
     except ModuleNotFoundError:
-        raise DatasetGenError("--suite needs Blender's Python module (pip install bpy), or run it in Blender: "
-                              "blender -b --python datasets_gen/generate.py -- --suite DIR ...") from None
+        raise DatasetGenError(f"--suite needs Blender's Python module (bpy), which this Python ({sys.executable}) "
+                              "lacks: use the project's Python, .venv/bin/python (`make setup` creates it), or run "
+                              "it in Blender: blender -b --python datasets_gen/generate.py -- --suite DIR ...") from None
     from .generator import run
 
     overwrite = bool(plan) and plan[0].options.overwrite

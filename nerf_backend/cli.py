@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 from .errors import NerfError
@@ -33,7 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .models import GRID_RENDER_CHUNK
     from .render_views import DEFAULT_CHUNK
 
-    parser = argparse.ArgumentParser(prog="python -m nerf_backend", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m nerf_backend", description="Train, render, score and benchmark NeRFs of Blender scenes.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
     sub = parser.add_subparsers(dest="command", required=True)
 

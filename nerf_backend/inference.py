@@ -3,17 +3,16 @@
 from __future__ import annotations
 
 import json
-import sys
 import time
 from pathlib import Path
 
 import torch
-from tqdm import tqdm
 
 from .config import TrainConfig
 from .dataset import load_scene_bounds, load_split
 from .files import write_json
 from .models import build_model
+from .progress import Progress
 from .ray_bounds import RayBounds, choose_ray_bounds
 from .render_views import render_poses
 from .run_folder import RunFolder
@@ -53,7 +52,7 @@ def render_split(run: RunFolder, split: str, device: torch.device, chunk: int | 
     intrinsics = dataset_split.intrinsics if scale == 1.0 else dataset_split.intrinsics.scaled(scale)
     out_dir = run.renders_dir(split) if scale == 1.0 else run.path / "renders" / f"{split}_x{scale:g}"
     stems = [view_stem(p) for p in dataset_split.image_paths]
-    bar = tqdm(total=len(stems), desc=f"render {split}", unit="view", disable=not progress, file=sys.stderr)
+    bar = Progress(len(stems), f"render {split}", unit="view", enabled=progress)
     start = time.perf_counter()
     render_poses(model, intrinsics, dataset_split.poses, stems, ray_bounds, out_dir,
                  chunk=chunk, on_view=lambda i: bar.update(1))

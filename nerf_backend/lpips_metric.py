@@ -110,10 +110,7 @@ def load_lpips(backbone: Path | None = None, linear: Path | None = None, device:
     backbone = Path(backbone) if backbone is not None else default_backbone_path()
     linear = Path(linear) if linear is not None else default_linear_path()
     if not backbone.is_file():
-        raise LpipsUnavailable(
-            f"the AlexNet backbone weights are not on this machine ({backbone} not found); pass "
-            f"--lpips-weights PATH to torchvision's {BACKBONE_FILE}, or put it in torch hub's cache "
-            f"({default_backbone_path()})")
+        raise LpipsUnavailable(f"no AlexNet weights at {backbone} (give --lpips-weights PATH to {BACKBONE_FILE})")
     if linear is None or not linear.is_file():
         raise LpipsUnavailable(
             f"the LPIPS v0.1 linear-layer weights are not on this machine ({linear or 'no lpips package'}); "

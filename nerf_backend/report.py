@@ -184,6 +184,10 @@ figure { margin: 0; } figcaption { font-size: 0.75em; color: #555; }
 .alert { background: #fdecea; border-left: 4px solid #c0392b; padding: 0.5em 1em; margin: 1em 0; }
 """
 
+# Depth is the distance along each ray in the dataset's frame (after its world_to_nerf).
+DEPTH_UNIT = "dataset units"
+DEPTH_UNIT_NOTE = "mean absolute error of the distance along each ray, in the dataset's frame (after world_to_nerf)"
+
 SORT_SCRIPT = """
 document.querySelectorAll("table.views").forEach(function (table) {
   table.querySelectorAll("th.sortable").forEach(function (header) {
@@ -245,7 +249,7 @@ def _headline(result: Result) -> str:
     cards = [("PSNR", f"{m['psnr']:.2f} dB"), ("SSIM", f"{m['ssim']:.4f}"),
              ("LPIPS", _fmt(m.get("lpips"), ".4f", "unavailable"))]
     if m.get("depth_mae") is not None:
-        cards.append(("depth MAE", f"{m['depth_mae']:.4f}"))
+        cards.append(("depth MAE", f"{m['depth_mae']:.4f} {DEPTH_UNIT}"))
     config, events = result.run_config, result.events
     if config is not None:
         done = [e for e in events if e.get("event") in ("done", "checkpoint")]
@@ -295,7 +299,7 @@ def _views_table(page: _Page, result: Result, prefix: str, split) -> str:
         gt = page.image(f"gt_{view['view']}.png", pixels=reference)
         render = page.image(f"{prefix}_{view['view']}.png", source=result.renders_dir / f"{view['view']}.png")
         error = page.image(f"{prefix}_{view['view']}_error.png", pixels=error_heatmap(rendered, reference))
-        data = " ".join(f'data-{k}="{_fmt(view.get(k), ".6f", "nan")}"' for k in ("psnr", "ssim", "lpips"))
+        data = " ".join(f'data-{k}="{_fmt(view.get(k), ".6f", "nan")}"' for k in ("psnr", "ssim", "lpips", "depth_mae"))
         rows.append(
             f'<tr {data} data-name="{index}"><td>{html.escape(view["view"])}</td><td>{page.figure(gt, "Cycles")}</td>'
             f"<td>{page.figure(render, 'NeRF')}</td><td>{page.figure(error, 'error')}</td>"
@@ -304,7 +308,8 @@ def _views_table(page: _Page, result: Result, prefix: str, split) -> str:
     header = ('<table class="views"><thead><tr><th class="sortable" data-key="name">view</th><th>Cycles (ground truth)</th>'
               '<th>NeRF</th><th>error</th><th class="sortable num" data-key="psnr" data-order="asc">PSNR (dB)</th>'
               '<th class="sortable num" data-key="ssim">SSIM</th><th class="sortable num" data-key="lpips">LPIPS</th>'
-              "<th>depth MAE</th></tr></thead><tbody>")
+              f'<th class="sortable num" data-key="depth_mae" title="{DEPTH_UNIT_NOTE}">depth MAE ({DEPTH_UNIT})</th>'
+              "</tr></thead><tbody>")
     return header + "\n".join(rows) + "</tbody></table>"
 
 
@@ -333,7 +338,7 @@ def _bench_section(page: _Page, bench_json: Path) -> str:
 def _comparison(page: _Page, results: list[Result], split) -> str:
     out = ["<h2>Runs compared</h2>", '<table><tr><th>result</th><th>preset</th><th class="num">iterations</th>'
            '<th class="num">training s</th><th class="num">PSNR (dB)</th><th class="num">SSIM</th>'
-           '<th class="num">LPIPS</th><th class="num">depth MAE</th></tr>']
+           f'<th class="num">LPIPS</th><th class="num" title="{DEPTH_UNIT_NOTE}">depth MAE ({DEPTH_UNIT})</th></tr>']
     for result in results:
         done = [e for e in result.events if e.get("event") in ("done", "checkpoint")]
         last = done[-1] if done else {}

@@ -102,12 +102,19 @@ class RunFolder:
         """Hold an exclusive OS lock on RUN/.lock for the life of this process; a second
         trainer on the same folder gets a clear error. The OS drops it even on kill -9."""
         self.path.mkdir(parents=True, exist_ok=True)
-        handle = open(self.path / LOCK_NAME, "a+")
-        try:
-            _lock_file(handle)
-        except OSError:
+        lock = self.path / LOCK_NAME
+        while True:
+            handle = open(lock, "a+")
+            try:
+                _lock_file(handle)
+            except OSError:
+                handle.close()
+                raise RunError(f"{self.path}: {IN_USE}") from None
+            # A trainer that just finished removes its lock file: if ours was that file, the
+            # lock we hold is on a name nobody sees any more; take the new one instead.
+            if lock.is_file() and os.path.samestat(os.fstat(handle.fileno()), os.stat(lock)):
+                break
             handle.close()
-            raise RunError(f"{self.path}: {IN_USE}") from None
         handle.seek(0)
         handle.truncate()
         handle.write(str(os.getpid()))
@@ -128,7 +135,12 @@ class RunFolder:
         return False  # closing the handle released the probe's lock
 
     def release_lock(self) -> None:
+        """Drop the lock and remove RUN/.lock (still holding it, so no one else's is removed)."""
         if self._lock_handle is not None:
+            try:
+                (self.path / LOCK_NAME).unlink()
+            except OSError:  # Windows will not remove an open file; the lock still goes
+                pass
             self._lock_handle.close()
             self._lock_handle = None
 

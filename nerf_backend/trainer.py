@@ -6,14 +6,12 @@ from __future__ import annotations
 
 import shutil
 import signal
-import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from tqdm import tqdm
 
 from .cameras import camera_rays, pixel_centres
 from .config import TrainConfig, preset_config, with_overrides
@@ -24,8 +22,9 @@ from .errors import NerfError, RunError
 from .files import write_png
 from .collapse_guard import CollapseGuard, Verdict, blank_psnr, recovery_config
 from .metrics import mse_to_psnr, psnr
-from .models import build_model, final_output
+from .models import build_model
 from .occupancy_prior import PRIOR_KINDS, OccupancyPrior, load_occupancy_prior
+from .progress import Progress
 from .ray_bounds import RayBounds, choose_ray_bounds
 from .render_views import render_image
 from .run_folder import IN_USE, LOCK_NAME, RunFolder
@@ -57,24 +56,19 @@ class TrainSummary:
 
 
 class _TrainingProgress:
-    """A tqdm bar over iterations, or over training seconds when a time budget will end
-    the run first (then the bar's time left is the real one)."""
+    """Progress over iterations, or over training seconds when a time budget will end the run
+    first (then the time left is the real one)."""
 
     def __init__(self, iterations: int, iteration: int, max_seconds: float | None, seconds: float,
                  enabled: bool, description: str) -> None:
         self.by_time = max_seconds is not None
         total, initial = (max_seconds, seconds) if self.by_time else (iterations, iteration)
-        self.bar = tqdm(total=total, initial=initial, disable=not enabled, desc=description, file=sys.stderr,
-                        unit="s" if self.by_time else "it", dynamic_ncols=True,
-                        bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}{postfix}]"
-                        if self.by_time else None)
+        self.bar = Progress(total, description, unit="s" if self.by_time else "it", initial=initial,
+                            enabled=enabled, seconds=self.by_time)
         self.iteration = iteration
 
     def step(self, iteration: int, seconds: float) -> None:
-        if self.by_time:
-            self.bar.update(min(seconds, self.bar.total) - self.bar.n)
-        else:
-            self.bar.update(iteration - self.iteration)
+        self.bar.advance_to(seconds if self.by_time else iteration)
         self.iteration = iteration
 
     def show(self, **values: str) -> None:
@@ -82,10 +76,7 @@ class _TrainingProgress:
 
     def note(self, message: str) -> None:
         """A line above the bar (or alone on stderr when the bar is off): events the user must see."""
-        if self.bar.disable:
-            print(message, file=sys.stderr)
-        else:
-            self.bar.write(message, file=sys.stderr)
+        self.bar.write(message)
 
     def close(self) -> None:
         self.bar.close()
@@ -403,10 +394,11 @@ def _train_locked(run: RunFolder, plan: _RunPlan, val_split: DatasetSplit | None
         if score is None or score.iteration != iteration:
             score = _validate(model, val_split, ray_bounds, run, iteration, train_seconds)
             val_psnr = score.psnr
-        # A run old enough to judge never ends silently on a near-blank model (a younger one
-        # is not yet called a failure: it may simply not have started).
-        old_enough = iteration - restart["start_iteration"] >= config.collapse_check_after
-        collapse = guard.confirm(model, score.psnr, score.blank_psnr, iteration) if old_enough else None
+        # A run old enough to judge never ends silently on a near-blank model; nor does one
+        # restarted after a collapse, however young (a young first start is not yet called a
+        # failure: it may simply not have started).
+        judged = (iteration - restart["start_iteration"] >= config.collapse_check_after or restart["attempt"] >= 1)
+        collapse = guard.confirm(model, score.psnr, score.blank_psnr, iteration) if judged else None
         if collapse is not None:
             report_collapse(collapse, f"none: the run ended ({stop_reason}) before it could recover", final=True)
             stop_reason = "collapsed"

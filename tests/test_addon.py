@@ -58,6 +58,12 @@ def test_installs_enables_and_registers(session):
     assert {"blender_manifest.toml", "nerf_backend", "datasets_gen"} <= set(install["installed_files"])
 
 
+def test_every_setting_and_choice_has_a_tooltip(session):
+    tips = session["tooltips"]
+    assert "dataset_dir" in tips and "preset.auto" in tips and "preferences.python_path" in tips
+    assert not [name for name, tip in tips.items() if not tip.strip()], tips
+
+
 def test_generate_operator_shows_the_scene_checks_and_writes_the_dataset(session):
     # A.blend is an EEVEE scene with Filmic colour: the dialog before rendering says both.
     warnings = session["scene_warnings"]
@@ -105,3 +111,17 @@ def test_active_camera_nerf_render_clears_the_psnr_floor_against_cycles(session)
 def test_disables_and_uninstalls_cleanly(session):
     assert session["disable"] == {"enabled": False, "classes": [], "scene_property": False}
     assert session["uninstall"] == {"result": ["FINISHED"], "left": False}
+
+
+def test_every_icon_the_addon_names_exists_in_this_blender():
+    """An icon Blender does not know raises on every redraw of its panel (SPLITSCREEN did in
+    4.3 and 5.0): each name used in addon/ must be one of this bpy's icons."""
+    import re
+
+    used = sorted({name for path in (REPO_ROOT / "addon").glob("*.py")
+                   for name in re.findall(r"""icon=["']([A-Z0-9_]+)["']""", path.read_text())})
+    assert used, "no icon names found: the pattern no longer matches the add-on's code"
+    script = ("import bpy, json; print(json.dumps([bpy.app.version_string, sorted(bpy.types.UILayout.bl_rna"
+              ".functions['prop'].parameters['icon'].enum_items.keys())]))")
+    version, known = json.loads(run_python("-c", script).stdout.strip().splitlines()[-1])
+    assert not set(used) - set(known), f"icons unknown to Blender {version}: {sorted(set(used) - set(known))}"

@@ -158,3 +158,18 @@ def test_the_guard_stops_a_model_that_cannot_learn(bright_object_datasets, tmp_p
     assert status.state == "failed"
     assert status.error.startswith("The model collapsed to the blank image. Collapsed at iteration 40")
     assert "stopped: it had already been restarted once" in status.error
+
+
+def test_a_restarted_run_that_ends_young_and_blank_is_a_failure(bright_object_datasets, tmp_path):
+    """Restarted at 20, the budget ends the run 10 steps later, before the guard would judge a
+    fresh start: still near blank, it fails with the collapse named (found on the suite: the
+    preview preset on bright_object restarted at 250 and ended blank at 376 with exit 0)."""
+    data = bright_object_datasets["without_profile"]
+    run = tmp_path / "young"
+    result = run_python("-m", "nerf_backend", "train", str(data), "--preset", "fast", "--out", str(run),
+                        "--iters", "30", "--no-progress", "--set", "learning_rate=0", "--set", "network_learning_rate=0",
+                        "--set", "validate_every=20", "--set", "collapse_check_after=20", check=False)
+    assert result.returncode == 3, result.stderr
+    collapses = [e for e in _events(run) if e["event"] == "collapse"]
+    assert [(e["iteration"], e["final"]) for e in collapses] == [(20, False), (30, True)]
+    assert collapses[-1]["action"].startswith("none: the run ended (iterations)")

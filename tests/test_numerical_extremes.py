@@ -17,7 +17,7 @@ from nerf_backend.dataset import SceneBounds
 from nerf_backend.fields import FieldConfig, NerfField
 from nerf_backend.models import GridModel
 from nerf_backend.ray_rendering import SamplingConfig, render_rays
-from nerf_backend.samplers import interval_midpoints, sample_pdf, stratified_edges
+from nerf_backend.samplers import sample_pdf, stratified_edges
 from nerf_backend.volume_rendering import composite_rgb, expected_depth, render_weights
 
 SAMPLES = 64

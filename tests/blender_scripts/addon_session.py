@@ -42,6 +42,22 @@ result = bpy.ops.extensions.package_install_files(filepath=str(ZIP), repo=repo.m
 module = f"bl_ext.{repo.module}.{PACKAGE_ID}"
 report["install"] = {"result": sorted(result), "enabled": module in bpy.context.preferences.addons,
                      "classes": nerf_classes(), "installed_files": sorted(p.name for p in (WORK / "repo" / PACKAGE_ID).iterdir())}
+
+def _tooltips(rna) -> dict[str, str]:
+    """Every user-facing property's tooltip, and each enum item's, as Blender shows them."""
+    tips = {}
+    for prop in rna.properties:
+        if prop.identifier in ("rna_type", "name", "bl_idname"):
+            continue
+        tips[prop.identifier] = prop.description
+        if prop.type == "ENUM":
+            tips.update({f"{prop.identifier}.{item.identifier}": item.description for item in prop.enum_items})
+    return tips
+
+
+addon = bpy.context.preferences.addons[module]
+report["tooltips"] = {**_tooltips(bpy.types.Scene.bl_rna.properties["nerf"].fixed_type.bl_rna),
+                      **{f"preferences.{k}": v for k, v in _tooltips(addon.preferences.bl_rna).items()}}
 save()
 
 # 2. a dataset from a real scene, through the panel's operator
