@@ -132,12 +132,17 @@ def test_a_large_bright_object_is_learned_not_emptied(bright_object_datasets, tm
     assert not [e for e in _events(run) if e["event"] == "collapse"], "a healthy run logs no collapse"
 
 
+def _train_frozen(data, run, iterations: int):
+    """fast with learning rates 0 (a model that cannot learn), validated and judged every 20 steps."""
+    return run_python("-m", "nerf_backend", "train", str(data), "--preset", "fast", "--out", str(run),
+                      "--iters", str(iterations), "--no-progress", "--set", "learning_rate=0",
+                      "--set", "network_learning_rate=0", "--set", "validate_every=20",
+                      "--set", "collapse_check_after=20", check=False)
+
+
 def test_the_guard_stops_a_model_that_cannot_learn(bright_object_datasets, tmp_path):
-    data = bright_object_datasets["without_profile"]
     run = tmp_path / "frozen"
-    result = run_python("-m", "nerf_backend", "train", str(data), "--preset", "fast", "--out", str(run),
-                        "--iters", "100", "--no-progress", "--set", "learning_rate=0", "--set", "network_learning_rate=0",
-                        "--set", "validate_every=20", "--set", "collapse_check_after=20", check=False)
+    result = _train_frozen(bright_object_datasets["without_profile"], run, iterations=100)
     assert result.returncode == 3, result.stderr
     # The progress output names the collapse and what was done, then the failure.
     assert "collapse: validation PSNR" in result.stderr and "restarted from a new start with" in result.stderr
@@ -164,11 +169,8 @@ def test_a_restarted_run_that_ends_young_and_blank_is_a_failure(bright_object_da
     """Restarted at 20, the budget ends the run 10 steps later, before the guard would judge a
     fresh start: still near blank, it fails with the collapse named (found on the suite: the
     preview preset on bright_object restarted at 250 and ended blank at 376 with exit 0)."""
-    data = bright_object_datasets["without_profile"]
     run = tmp_path / "young"
-    result = run_python("-m", "nerf_backend", "train", str(data), "--preset", "fast", "--out", str(run),
-                        "--iters", "30", "--no-progress", "--set", "learning_rate=0", "--set", "network_learning_rate=0",
-                        "--set", "validate_every=20", "--set", "collapse_check_after=20", check=False)
+    result = _train_frozen(bright_object_datasets["without_profile"], run, iterations=30)
     assert result.returncode == 3, result.stderr
     collapses = [e for e in _events(run) if e["event"] == "collapse"]
     assert [(e["iteration"], e["final"]) for e in collapses] == [(20, False), (30, True)]
