@@ -19,6 +19,7 @@ from .camera_mapping import camera_file
 from .jobs import DatasetJob, JobStatus, TrainingJob, default_base_python, python_in_venv
 
 PREVIEW_IMAGE = "NeRF preview"
+COMPARISON_IMAGE = "NeRF comparison"
 BACKEND_TIMEOUT_S = 3600
 
 _jobs: dict[str, object] = {}  # folder → job (keeps the Popen that started it)
@@ -147,11 +148,32 @@ def _show_image(name: str, path: Path):
             bpy.data.images.remove(image)
         image = bpy.data.images.load(str(path), check_existing=False)
         image.name = name
-    for window in getattr(bpy.context.window_manager, "windows", []):
-        for area in window.screen.areas:
-            if area.type == "IMAGE_EDITOR" and name != PREVIEW_IMAGE:
-                area.spaces.active.image = image
     return image
+
+
+def show_in_image_editor(context, image) -> str:
+    """Show ``image`` where the user looks: in an open Image Editor, else in a new window
+    turned into one. Returns where ("" without a window: the ``bpy`` module, ``blender -b``)."""
+    if bpy.app.background:  # no screen to show it on (the bpy module, blender -b)
+        return ""
+    windows = list(getattr(context.window_manager, "windows", []))
+    for window in windows:
+        for area in window.screen.areas:
+            if area.type == "IMAGE_EDITOR":
+                area.spaces.active.image = image
+                area.tag_redraw()
+                return "an open Image Editor"
+    window = context.window or (windows[0] if windows else None)
+    if window is None:
+        return ""
+    area = context.area or window.screen.areas[0]
+    with context.temp_override(window=window, area=area):
+        bpy.ops.wm.window_new()
+    new_window = context.window_manager.windows[-1]
+    editor = max(new_window.screen.areas, key=lambda a: a.width * a.height)
+    editor.type = "IMAGE_EDITOR"
+    editor.spaces.active.image = image
+    return "a new Image Editor window"
 
 
 # ---------------------------------------------------------------- dataset
@@ -181,7 +203,7 @@ class NERF_OT_generate_dataset(bpy.types.Operator):
     """Render the NeRF dataset of this scene with Cycles (in a background Blender)"""
 
     bl_idname = "nerf.generate_dataset"
-    bl_label = "Generate dataset"
+    bl_label = "Generate Dataset"
 
     def invoke(self, context, event):
         global _scene_warnings
@@ -340,15 +362,16 @@ class NERF_OT_render_test_views(bpy.types.Operator):
     """Render the dataset's test views with the trained NeRF and load them as images"""
 
     bl_idname = "nerf.render_test_views"
-    bl_label = "Render test views"
+    bl_label = "Render Test Views"
 
     @_reporting_backend_errors
     def execute(self, context):
         run_backend(context, "render", str(run_dir(context)), "--split", "test", "--no-progress")
         renders = sorted((run_dir(context) / "renders" / "test").glob("r_*.png"), key=lambda p: int(p.stem[2:]))
-        for path in renders:
-            _show_image(f"NeRF test {path.stem}", path)
-        self.report({"INFO"}, f"loaded {len(renders)} test renders as images 'NeRF test r_N'")
+        images = [_show_image(f"NeRF test {path.stem}", path) for path in renders]
+        where = show_in_image_editor(context, images[0]) if images else ""
+        self.report({"INFO"}, f"loaded {len(renders)} test renders as images 'NeRF test r_N'"
+                    + (f", the first shown in {where}" if where else ""))
         return {"FINISHED"}
 
 
@@ -356,12 +379,12 @@ class NERF_OT_render_active_camera(bpy.types.Operator):
     """Render the view from the active camera with the trained NeRF"""
 
     bl_idname = "nerf.render_active_camera"
-    bl_label = "Render active camera"
+    bl_label = "Render Active Camera"
 
     @_reporting_backend_errors
     def execute(self, context):
-        path = render_active_camera_nerf(context)
-        _show_image("NeRF active camera", path)
+        image = _show_image("NeRF active camera", render_active_camera_nerf(context))
+        show_in_image_editor(context, image)
         return {"FINISHED"}
 
 
@@ -407,6 +430,8 @@ class NERF_OT_compare(bpy.types.Operator):
         for name, path in (("Cycles active camera", cycles), ("NeRF active camera", nerf),
                            ("NeRF difference", nerf.parent / "difference.png")):
             _show_image(name, path)
+        # Cycles, the NeRF and their difference side by side, with the numbers.
+        show_in_image_editor(context, _show_image(COMPARISON_IMAGE, nerf.parent / "side_by_side.png"))
         self.report({"INFO"}, f"PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}, LPIPS {s.compare_lpips}")
         return {"FINISHED"}
 
@@ -415,7 +440,7 @@ class NERF_OT_open_report(bpy.types.Operator):
     """Write the HTML comparison report of the run and open it in the web browser"""
 
     bl_idname = "nerf.open_report"
-    bl_label = "Open report"
+    bl_label = "Open Report"
 
     @_reporting_backend_errors
     def execute(self, context):
@@ -431,7 +456,7 @@ class NERF_OT_setup_backend(bpy.types.Operator):
     """Create a Python environment with the backend's packages (torch...) for training"""
 
     bl_idname = "nerf.setup_backend"
-    bl_label = "Set up backend"
+    bl_label = "Set Up Backend"
 
     def execute(self, context):
         global _setup

@@ -1,5 +1,9 @@
-"""View3D › Sidebar › NeRF: dataset, training, results. Drawing only; the buttons are in
-``operators`` and the job state comes from its last poll."""
+"""View3D › Sidebar › NeRF: dataset, training, results, each with sub-panels. Drawing only;
+the buttons are in ``operators`` and the job state comes from its last poll.
+
+Blender's conventions: property split (label left, field right) so labels get a column of
+their own at any sidebar width, title-case labels, settings that are not needed every time
+in sub-panels."""
 
 from __future__ import annotations
 
@@ -9,26 +13,47 @@ import bpy
 
 from . import operators
 
+# Characters per line of wrapped text at the default sidebar width (291 px at 1600×1000).
+WRAP = 44
+
 
 def _draw_status(layout, state, idle_text: str) -> None:
     if state is None or state.state == "idle":
-        layout.label(text=idle_text)
+        layout.label(text=idle_text, icon="INFO")
         return
     if state.state == "running":
         left = f", {state.seconds_left:.0f} s left" if state.seconds_left is not None else ""
         layout.progress(factor=state.fraction, type="BAR", text=f"{state.detail}{left}")
     elif state.state == "failed":
         box = layout.box()
-        box.label(text="Failed:", icon="ERROR")
-        lines = [wrapped for line in state.error.splitlines() for wrapped in textwrap.wrap(line, 60) or [""]]
+        box.alert = True
+        box.label(text="Failed", icon="ERROR")
+        lines = [wrapped for line in state.error.splitlines() for wrapped in textwrap.wrap(line, WRAP) or [""]]
         for line in lines[-8:]:
             box.label(text=line)
     else:
-        layout.label(text=f"{state.state.capitalize()}: {state.detail}", icon="CHECKMARK" if state.state == "done" else "PAUSE")
+        icon = "CHECKMARK" if state.state == "done" else "PAUSE"
+        for number, line in enumerate(textwrap.wrap(f"{state.state.capitalize()}: {state.detail}", WRAP)):
+            layout.label(text=line, icon=icon if number == 0 else "BLANK1")
     if state.warning and state.state != "failed":
         box = layout.box()
-        for number, line in enumerate(textwrap.wrap(state.warning, 60)[:6]):
-            box.label(text=line, icon="ERROR" if number == 0 else "NONE")
+        for number, line in enumerate(textwrap.wrap(state.warning, WRAP)[:6]):
+            box.label(text=line, icon="ERROR" if number == 0 else "BLANK1")
+
+
+def _value_row(layout, label: str, value: str) -> None:
+    """A read-only value in the property-split layout: label right-aligned left, value right."""
+    split = layout.split(factor=0.4)
+    left = split.row()
+    left.alignment = "RIGHT"
+    left.label(text=label)
+    split.label(text=value)
+
+
+def _split(layout):
+    layout.use_property_split = True
+    layout.use_property_decorate = False  # no keyframe dots: these are not animatable settings
+    return layout
 
 
 class _NerfPanel:
@@ -41,33 +66,39 @@ class NERF_PT_dataset(_NerfPanel, bpy.types.Panel):
     bl_label = "Dataset"
 
     def draw(self, context):
-        s, layout = context.scene.nerf, self.layout
+        s, layout = context.scene.nerf, _split(self.layout)
         layout.prop(s, "dataset_dir")
-        row = layout.row(align=True)
-        for name in ("train_views", "val_views", "test_views"):
-            row.prop(s, name)
+        col = layout.column(align=True)
+        col.prop(s, "train_views")
+        col.prop(s, "val_views")
+        col.prop(s, "test_views")
         layout.prop(s, "resolution")
-        row = layout.row(align=True)
-        row.prop(s, "samples")
-        row.prop(s, "render_device", text="")
-        layout.prop(s, "sphere")
-        layout.prop(s, "depth_normals")
-        layout.prop(s, "seed")
-        folder = str(operators.dataset_dir(context))
-        running = operators.status.get(folder)
         layout.operator("nerf.generate_dataset", icon="RENDER_STILL")
-        _draw_status(layout, running, "No dataset rendering")
+        _draw_status(layout, operators.status.get(str(operators.dataset_dir(context))), "No dataset rendering")
+
+
+class NERF_PT_dataset_rendering(_NerfPanel, bpy.types.Panel):
+    bl_label = "Rendering"
+    bl_parent_id = "NERF_PT_dataset"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        s, layout = context.scene.nerf, _split(self.layout)
+        layout.prop(s, "samples")
+        layout.prop(s, "render_device")
+        layout.prop(s, "depth_normals")
+        layout.prop(s, "sphere")
+        layout.prop(s, "seed")
 
 
 class NERF_PT_training(_NerfPanel, bpy.types.Panel):
     bl_label = "Training"
 
     def draw(self, context):
-        s, layout = context.scene.nerf, self.layout
+        s, layout = context.scene.nerf, _split(self.layout)
         layout.prop(s, "run_dir")
         layout.prop(s, "preset")
-        row = layout.row(align=True)
-        row.prop(s, "budget_kind", expand=True)
+        layout.row().prop(s, "budget_kind", expand=True)
         layout.prop(s, "budget_seconds" if s.budget_kind == "TIME" else "budget_iterations")
         layout.prop(s, "train_device")
         state = operators.status.get(str(operators.run_dir(context)))
@@ -78,10 +109,6 @@ class NERF_PT_training(_NerfPanel, bpy.types.Panel):
             row.operator("nerf.train", icon="PLAY").resume = False
             row.operator("nerf.train", text="Resume", icon="FILE_REFRESH").resume = True
         _draw_status(layout, state, "Not training")
-        preview = bpy.data.images.get(operators.PREVIEW_IMAGE)
-        if preview is not None:
-            layout.template_icon(icon_value=preview.preview_ensure().icon_id, scale=6.0)
-            layout.label(text=f"Latest validation render (image '{operators.PREVIEW_IMAGE}')")
         setup = operators.status.get("backend-setup")
         if setup is not None:
             _draw_status(layout, setup, "")
@@ -89,22 +116,55 @@ class NERF_PT_training(_NerfPanel, bpy.types.Panel):
             layout.operator("nerf.setup_backend", icon="CONSOLE")
 
 
+class NERF_PT_training_preview(_NerfPanel, bpy.types.Panel):
+    """The latest validation render, updated while training runs."""
+
+    bl_label = "Live Preview"
+    bl_parent_id = "NERF_PT_training"
+
+    def draw(self, context):
+        layout = self.layout
+        preview = bpy.data.images.get(operators.PREVIEW_IMAGE)
+        if preview is None:
+            layout.label(text="Shown once training validates", icon="INFO")
+            return
+        layout.template_icon(icon_value=preview.preview_ensure().icon_id, scale=8.0)
+        layout.label(text=f"Latest validation view (image '{operators.PREVIEW_IMAGE}')")
+
+
 class NERF_PT_results(_NerfPanel, bpy.types.Panel):
     bl_label = "Results"
 
     def draw(self, context):
-        s, layout = context.scene.nerf, self.layout
-        layout.operator("nerf.render_test_views", icon="IMAGE_DATA")
-        layout.operator("nerf.render_active_camera", icon="CAMERA_DATA")
+        layout = self.layout
+        col = layout.column(align=True)
+        col.operator("nerf.render_test_views", icon="IMAGE_DATA")
+        col.operator("nerf.render_active_camera", icon="CAMERA_DATA")
         layout.operator("nerf.compare", icon="ARROW_LEFTRIGHT")
-        if s.compare_lpips:
-            col = layout.column(align=True)
-            col.label(text=f"PSNR {s.compare_psnr:.2f} dB   SSIM {s.compare_ssim:.4f}")
-            col.label(text=f"LPIPS {s.compare_lpips}")
         layout.operator("nerf.open_report", icon="URL")
 
 
-CLASSES = (NERF_PT_dataset, NERF_PT_training, NERF_PT_results)
+class NERF_PT_results_comparison(_NerfPanel, bpy.types.Panel):
+    """The last Compare with Cycles: its numbers, and its image in the Image Editor."""
+
+    bl_label = "Comparison"
+    bl_parent_id = "NERF_PT_results"
+
+    def draw(self, context):
+        s, layout = context.scene.nerf, self.layout
+        if not s.compare_lpips:
+            layout.label(text="Compare with Cycles to see numbers", icon="INFO")
+            return
+        col = layout.column(align=True)
+        _value_row(col, "PSNR", f"{s.compare_psnr:.2f} dB")
+        _value_row(col, "SSIM", f"{s.compare_ssim:.4f}")
+        _value_row(col, "LPIPS", s.compare_lpips)
+        if operators.COMPARISON_IMAGE in bpy.data.images:
+            layout.label(text=f"Side by side: image '{operators.COMPARISON_IMAGE}'", icon="IMAGE_DATA")
+
+
+CLASSES = (NERF_PT_dataset, NERF_PT_dataset_rendering, NERF_PT_training, NERF_PT_training_preview,
+           NERF_PT_results, NERF_PT_results_comparison)
 
 
 def register() -> None:

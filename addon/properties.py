@@ -18,26 +18,26 @@ DEVICES = (("auto", "Auto", "CUDA, then Apple's MPS, then the CPU"), ("cpu", "CP
 
 class NerfSettings(bpy.types.PropertyGroup):
     # Dataset
-    dataset_dir: StringProperty(name="Dataset folder", subtype="DIR_PATH", default="//nerf_dataset",
+    dataset_dir: StringProperty(name="Folder", subtype="DIR_PATH", default="//nerf_dataset",
                                  description="Where the dataset is written (// is the .blend's folder)")
-    train_views: IntProperty(name="Train", default=100, min=1, max=10000,
+    train_views: IntProperty(name="Train Views", default=100, min=1, max=10000,
                               description="Training views, at random on the hemisphere (the protocol: 100)")
-    val_views: IntProperty(name="Val", default=10, min=1, max=10000,
+    val_views: IntProperty(name="Validation", default=10, min=1, max=10000,
                             description="Validation views, at random on the hemisphere (the protocol: 100)")
     test_views: IntProperty(name="Test", default=50, min=1, max=10000,
                              description="Test views, on the protocol's two-turn spiral (the protocol: 200)")
     resolution: IntProperty(name="Resolution", default=100, min=8, max=8192, description="Square image size in pixels")
-    samples: IntProperty(name="Cycles samples", default=64, min=1, max=65536,
+    samples: IntProperty(name="Samples", default=64, min=1, max=65536,
                           description="Cycles samples per pixel of every view")
-    render_device: EnumProperty(name="Render device", items=(("CPU", "CPU", "Render on the CPU"), ("GPU", "GPU", "Cycles' GPU backend")),
+    render_device: EnumProperty(name="Device", items=(("CPU", "CPU", "Render on the CPU"), ("GPU", "GPU", "Cycles' GPU backend")),
                                 default="CPU", description="What Cycles renders the views on")
-    sphere: BoolProperty(name="Full sphere", default=False, description="Train/val views on the full sphere, not the upper hemisphere")
-    depth_normals: EnumProperty(name="Depth/normals", default="test", description="Which views also get ground-truth depth and normal EXRs", items=(
-        ("none", "None", "No depth or normals"), ("test", "Test views", "Ground-truth depth and normals for the test views"),
-        ("all", "All views", "Ground-truth depth and normals for every view")))
+    sphere: BoolProperty(name="Full Sphere", default=False, description="Train/val views on the full sphere, not the upper hemisphere")
+    depth_normals: EnumProperty(name="Depth/Normals", default="test", description="Which views also get ground-truth depth and normal EXRs", items=(
+        ("none", "None", "No depth or normals"), ("test", "Test Views", "Ground-truth depth and normals for the test views"),
+        ("all", "All Views", "Ground-truth depth and normals for every view")))
     seed: IntProperty(name="Seed", default=0, min=0, description="Seed of the random camera positions (and of training)")
     # Training
-    run_dir: StringProperty(name="Run folder", subtype="DIR_PATH", default="//nerf_run",
+    run_dir: StringProperty(name="Folder", subtype="DIR_PATH", default="//nerf_run",
                              description="Where training writes its checkpoint, events and renders")
     preset: EnumProperty(name="Preset", items=PRESETS, default="auto", description="The model and its training settings")
     budget_kind: EnumProperty(name="Budget", default="TIME", description="Stop training after a time or a number of steps", items=(

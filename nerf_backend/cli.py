@@ -145,6 +145,12 @@ def _run(args: argparse.Namespace) -> int:
             overwrite=args.overwrite, progress=not args.no_progress,
         ))
         val = f", validation PSNR {summary.val_psnr:.2f} dB" if summary.val_psnr is not None else ""
+        if summary.had_nothing_to_do:
+            limit = "time budget" if summary.stop_reason == "time" else "iteration count"
+            print(f"nothing to do: the run had already reached its {limit} "
+                  f"({summary.iteration} iterations, {summary.train_seconds:.1f} s); raise --iters or "
+                  f"--max-seconds to train on{val}; run: {args.out}")
+            return 0
         print(f"trained {summary.iteration} iterations in {summary.train_seconds:.1f} s "
               f"(stopped: {summary.stop_reason}){val}; run: {args.out}")
         if summary.collapse is not None:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image
+from PIL import Image, ImageDraw, ImageFont
 
 from .dataset import DatasetSplit, composite
 from .errors import NerfError
@@ -176,7 +176,32 @@ def compare_images(reference: Path, render: Path, out_dir: Path, device: torch.d
         "lpips": lpips_distance(metric, a, b) if metric is not None else None, "lpips_unavailable": reason,
         "difference": str(out_dir / "difference.png"),
         "difference_scale": f"mean |render - reference| per pixel, 0 to {ERROR_SCALE} (inferno)",
+        "side_by_side": str(out_dir / "side_by_side.png"),
     }
-    write_png(out_dir / "difference.png", error_heatmap(a, b))
+    heatmap = error_heatmap(a, b)
+    write_png(out_dir / "difference.png", heatmap)
+    lpips = f"{result['lpips']:.4f}" if result["lpips"] is not None else "unavailable"
+    caption = f"PSNR {result['psnr']:.2f} dB   SSIM {result['ssim']:.4f}   LPIPS {lpips}"
+    write_png(out_dir / "side_by_side.png", side_by_side(
+        [(b, "Cycles (reference)"), (a, "NeRF"), (heatmap, f"|difference|, 0 to {ERROR_SCALE}")], caption))
     write_json(out_dir / "compare.json", result)
     return result
+
+
+def side_by_side(images: list[tuple[np.ndarray, str]], caption: str, min_tile: int = 256) -> np.ndarray:
+    """Images (H×W×3 floats in [0, 1], one size) in a row, each titled, over a caption line:
+    what the add-on shows in Blender's Image Editor after a comparison. Small images are
+    enlarged by whole pixels (no smoothing hides the NeRF's errors)."""
+    height, width = images[0][0].shape[:2]
+    scale = max(1, -(-min_tile // max(height, width)))
+    text_height, gap = 22, 4
+    canvas = Image.new("RGB", (len(images) * (width * scale + gap) - gap, height * scale + 2 * text_height), "white")
+    draw = ImageDraw.Draw(canvas)
+    font = ImageFont.load_default(size=14)
+    for index, (pixels, title) in enumerate(images):
+        tile = Image.fromarray(np.clip(np.round(pixels[..., :3] * 255.0), 0, 255).astype(np.uint8))
+        x = index * (width * scale + gap)
+        canvas.paste(tile.resize((width * scale, height * scale), Image.Resampling.NEAREST), (x, text_height))
+        draw.text((x + 4, 3), title, fill="black", font=font)
+    draw.text((4, height * scale + text_height + 3), caption, fill="black", font=font)
+    return np.asarray(canvas, dtype=np.float32) / 255.0

@@ -53,6 +53,12 @@ class TrainSummary:
     stop_reason: str  # "iterations", "time", "cancelled" or "collapsed"
     val_psnr: float | None
     collapse: Verdict | None = None  # the guard's last verdict when the run ended collapsed
+    started_at: int = 0  # the iteration this call began at (a resumed run's checkpoint)
+
+    @property
+    def had_nothing_to_do(self) -> bool:
+        """A resumed run that was already at its iteration count or time budget."""
+        return self.started_at == self.iteration and self.stop_reason in ("iterations", "time")
 
 
 class _TrainingProgress:
@@ -272,6 +278,7 @@ def _train_locked(run: RunFolder, plan: _RunPlan, val_split: DatasetSplit | None
         batch_generator.set_state(state["batch_rng"])
         sample_generator.set_state(state["sample_rng"].to(sample_generator.get_state().device))
         iteration, train_seconds = state["iteration"], state["train_seconds"]
+    started_at = iteration
 
     def checkpoint() -> None:
         # A non-finite weight never replaces the last good checkpoint.
@@ -404,7 +411,7 @@ def _train_locked(run: RunFolder, plan: _RunPlan, val_split: DatasetSplit | None
             stop_reason = "collapsed"
     checkpoint()
     run.log_event("done", iteration=iteration, elapsed_s=train_seconds, reason=stop_reason, val_psnr=val_psnr)
-    return TrainSummary(iteration, train_seconds, stop_reason, val_psnr, collapse=collapse)
+    return TrainSummary(iteration, train_seconds, stop_reason, val_psnr, collapse=collapse, started_at=started_at)
 
 
 def _occupancy_prior(dataset: Path, config: TrainConfig) -> OccupancyPrior | None:

@@ -6,13 +6,18 @@ disable and remove. See tests/blender_scripts/addon_session.py for the session i
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 import zipfile
 
 import pytest
 
+from blender_versions import LTS_VERSIONS, bpy_python
 from conftest import REPO_ROOT, SHARED_DIR, run_python
 
-PANELS = {"NERF_PT_dataset", "NERF_PT_training", "NERF_PT_results"}
+PANELS = {"NERF_PT_dataset", "NERF_PT_dataset_rendering", "NERF_PT_training", "NERF_PT_training_preview",
+          "NERF_PT_results", "NERF_PT_results_comparison"}
 # Every operator is run in the session except Set up backend, which would pip-install the
 # shipped requirements (a GPU build of torch); its work is tested through BackendSetup.
 OPERATORS = {"NERF_OT_generate_dataset", "NERF_OT_train", "NERF_OT_cancel_training", "NERF_OT_render_test_views",
@@ -40,15 +45,36 @@ def test_the_zip_holds_the_addon_and_both_packages_and_nothing_else(extension_zi
     assert not [n for n in names if "__pycache__" in n or n.startswith("tests/") or n.endswith(".pyc")]
 
 
-@pytest.fixture(scope="module")
-def session(extension_zip, tmp_path_factory):
+# The Blenders users run: the .venv's bpy (the newest) in `make test`; the LTS releases, each
+# from a venv of its own, in `make test-blender` (marker blender_matrix).
+BLENDERS = ["newest", *(pytest.param(version, marks=pytest.mark.blender_matrix) for version in LTS_VERSIONS)]
+
+
+def blender_python(version: str) -> tuple[str, dict]:
+    """The Python that runs this Blender, and the environment that names the backend's."""
+    if version == "newest":
+        return sys.executable, dict(os.environ)
+    return str(bpy_python(version)), {**os.environ, "NERF_BACKEND_PYTHON": sys.executable}
+
+
+@pytest.fixture(scope="module", params=BLENDERS)
+def session(request, extension_zip, tmp_path_factory):
     if not (SHARED_DIR / "scenes" / "A.blend").is_file():
         pytest.fail("../shared/scenes/A.blend is missing")
-    work = tmp_path_factory.mktemp("addon")
+    python, environment = blender_python(request.param)
+    work = tmp_path_factory.mktemp(f"addon-{request.param}")
     report = work / "report.json"
-    run_python(str(REPO_ROOT / "tests" / "blender_scripts" / "addon_session.py"), str(extension_zip), str(work),
-               str(report), timeout=1500)
-    return json.loads(report.read_text())
+    result = subprocess.run([python, str(REPO_ROOT / "tests" / "blender_scripts" / "addon_session.py"),
+                             str(extension_zip), str(work), str(report)], cwd=REPO_ROOT, env=environment,
+                            capture_output=True, text=True, timeout=1500)
+    if result.returncode != 0:
+        raise AssertionError(f"the add-on session in Blender {request.param} exited {result.returncode}\n"
+                             f"stdout:\n{result.stdout[-3000:]}\nstderr:\n{result.stderr[-3000:]}")
+    session = json.loads(report.read_text())
+    if request.param != "newest":
+        assert session["blender"].startswith(request.param), session["blender"]
+    print(f"Blender {session['blender']}: add-on session ran")
+    return session
 
 
 def test_installs_enables_and_registers(session):
@@ -89,8 +115,10 @@ def test_results_load_as_images_of_the_dataset_size(session):
     assert views["images"] == {f"NeRF test r_{i}": [32, 32] for i in range(3)}
     compare = session["compare"]
     assert compare["result"] == ["FINISHED"]
+    # The side-by-side image: three 32-pixel views enlarged 8 times, 4-pixel gaps, a title line
+    # above and a line of numbers below (22 pixels each).
     assert compare["images"] == {"Cycles active camera": [32, 32], "NeRF active camera": [32, 32],
-                                 "NeRF difference": [32, 32]}
+                                 "NeRF difference": [32, 32], "NeRF comparison": [3 * 256 + 2 * 4, 256 + 2 * 22]}
 
 
 def test_render_active_camera_report_and_cancel_operators(session):
@@ -113,15 +141,19 @@ def test_disables_and_uninstalls_cleanly(session):
     assert session["uninstall"] == {"result": ["FINISHED"], "left": False}
 
 
-def test_every_icon_the_addon_names_exists_in_this_blender():
+@pytest.mark.parametrize("version", BLENDERS)
+def test_every_icon_the_addon_names_exists_in_this_blender(version):
     """An icon Blender does not know raises on every redraw of its panel (SPLITSCREEN did in
-    4.3 and 5.0): each name used in addon/ must be one of this bpy's icons."""
+    4.3 and 5.0): each name used in addon/ must be one of each Blender's icons."""
     import re
 
-    used = sorted({name for path in (REPO_ROOT / "addon").glob("*.py")
-                   for name in re.findall(r"""icon=["']([A-Z0-9_]+)["']""", path.read_text())})
-    assert used, "no icon names found: the pattern no longer matches the add-on's code"
+    # Every upper-case string on a line that mentions an icon (also `icon = "A" if ... else "B"`).
+    used = sorted({name for path in (REPO_ROOT / "addon").glob("*.py") for line in path.read_text().splitlines()
+                   if "icon" in line for name in re.findall(r"""["']([A-Z][A-Z0-9_]+)["']""", line)})
+    assert {"ARROW_LEFTRIGHT", "PAUSE", "BLANK1"} <= set(used), f"the pattern no longer finds the add-on's icons: {used}"
     script = ("import bpy, json; print(json.dumps([bpy.app.version_string, sorted(bpy.types.UILayout.bl_rna"
               ".functions['prop'].parameters['icon'].enum_items.keys())]))")
-    version, known = json.loads(run_python("-c", script).stdout.strip().splitlines()[-1])
+    python, _ = blender_python(version)
+    output = subprocess.run([python, "-c", script], capture_output=True, text=True, check=True, timeout=300).stdout
+    version, known = json.loads(output.strip().splitlines()[-1])
     assert not set(used) - set(known), f"icons unknown to Blender {version}: {sorted(set(used) - set(known))}"

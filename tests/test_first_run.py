@@ -14,6 +14,8 @@ import subprocess
 import sys
 import termios
 
+import pytest
+
 from conftest import REPO_ROOT, run_python
 from nerf_backend import progress as progress_module
 from nerf_backend.progress import Progress
@@ -47,19 +49,20 @@ def _train_on_a_terminal(*args: str) -> tuple[int, str]:
     return process.wait(timeout=60), b"".join(chunks).decode(errors="replace")
 
 
-def test_a_finished_run_resumed_on_a_terminal_has_nothing_to_do(tiny_demo_dataset, tmp_path):
-    """make demo's train stage twice, with the bar drawn: the second run's recorded time is
-    already past its budget (the first run always overshoots by part of a step), and tqdm
-    once failed on a bar whose start lay past its end. It must end cleanly, saying so."""
+@pytest.mark.parametrize("stop", [("--max-seconds", BUDGET_S), ("--iters", "40")], ids=["budget", "iterations"])
+def test_a_finished_run_resumed_on_a_terminal_has_nothing_to_do(tiny_demo_dataset, tmp_path, stop):
+    """make demo's train stage twice, with the bar drawn (the demo stops at an iteration count;
+    a time budget is the other way a run ends). With a budget, the second run's recorded time
+    is already past it (the first run always overshoots by part of a step), and tqdm once
+    failed on a bar whose start lay past its end. It must end cleanly, saying so."""
     run = tmp_path / "run"
-    status, first = _train_on_a_terminal(str(tiny_demo_dataset), "--preset", "fast", "--out", str(run),
-                                         "--max-seconds", BUDGET_S)
+    status, first = _train_on_a_terminal(str(tiny_demo_dataset), "--preset", "fast", "--out", str(run), *stop)
     assert status == 0, first
-    assert "\r" in first and "it=" in first  # a bar was drawn, redrawn in place
-    status, second = _train_on_a_terminal(str(tiny_demo_dataset), "--out", str(run), "--max-seconds", BUDGET_S,
-                                          "--resume")
+    assert "\r" in first and "train fast" in first  # a bar was drawn, redrawn in place
+    status, second = _train_on_a_terminal(str(tiny_demo_dataset), "--out", str(run), *stop, "--resume")
     assert status == 0, second
     assert "Traceback" not in second and "error" not in second.lower(), second
+    assert "nothing to do" in second.lower(), second
 
 
 def test_a_log_file_gets_lines_not_a_redrawn_bar(tiny_demo_dataset, tmp_path):

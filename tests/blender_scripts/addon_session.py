@@ -1,7 +1,8 @@
 """A user's session with the installed extension, in real Blender (the bpy module), headless.
 
 Run as ``python addon_session.py EXTENSION.zip WORK_DIR REPORT.json`` with a Python that has bpy
-(and torch, which the add-on's training subprocess uses as its backend Python). Steps, each
+and torch (the add-on's training subprocess uses it as its backend Python), or with
+``NERF_BACKEND_PYTHON`` naming the backend's Python when this one has only bpy. Steps, each
 recorded in REPORT.json:
 
 1. install the zip into a fresh user extensions repository and enable it; list what registered;
@@ -16,6 +17,7 @@ recorded in REPORT.json:
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -25,7 +27,7 @@ import bpy
 ZIP, WORK, REPORT = Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3])
 SCENE = Path(__file__).resolve().parents[3] / "shared" / "scenes" / "A.blend"
 PACKAGE_ID = "nerf_from_blender"
-report: dict = {}
+report: dict = {"blender": bpy.app.version_string}
 
 
 def save() -> None:
@@ -63,7 +65,8 @@ save()
 # 2. a dataset from a real scene, through the panel's operator
 bpy.ops.wm.open_mainfile(filepath=str(SCENE))
 addon = bpy.context.preferences.addons[module]
-addon.preferences.python_path = sys.executable  # this Python has torch: the backend runs here
+# The backend's Python: this one (it has torch), or the one named (a bpy-only LTS venv).
+addon.preferences.python_path = os.environ.get("NERF_BACKEND_PYTHON", sys.executable)
 settings = bpy.context.scene.nerf
 settings.dataset_dir = str(WORK / "dataset")
 settings.run_dir = str(WORK / "run")
@@ -118,7 +121,8 @@ report["render_active_camera"] = {"result": sorted(bpy.ops.nerf.render_active_ca
 report["compare"] = {"result": sorted(bpy.ops.nerf.compare()), "psnr": settings.compare_psnr,
                      "ssim": settings.compare_ssim, "lpips": settings.compare_lpips,
                      "images": {name: list(bpy.data.images[name].size) for name in
-                                ("Cycles active camera", "NeRF active camera", "NeRF difference") if name in bpy.data.images}}
+                                ("Cycles active camera", "NeRF active camera", "NeRF difference", "NeRF comparison")
+                                if name in bpy.data.images}}
 save()
 
 # The report, written by the backend and opened (where there is a browser; none here).
