@@ -11,7 +11,7 @@ SUITE_DIR ?= out/suite
 BENCH_SUITE_DIR ?= out/bench_suite
 SUITE_SCENES ?= $(wildcard ../shared/scenes/*.blend)
 
-.PHONY: setup demo test test-blender test-slow bench-suite extension clean-demo
+.PHONY: setup demo test test-blender test-gui test-slow bench-suite extension clean-demo
 
 setup: $(STAMP)
 
@@ -33,10 +33,15 @@ test: $(STAMP)
 	$(PY) -m pytest -m "not slow and not blender_matrix and not gui" --durations=15
 
 # The add-on in the other Blenders users run, CI's second step: the bpy 4.2 LTS and 4.5 LTS
-# modules (each in .venv-bpy/VERSION, made on first use) and the real Blender 4.3.2 program with
-# its GUI under Xvfb (a Debian trixie chroot, built on first use; root). Screenshots: out/gui-screenshots/.
+# modules, each in .venv-bpy/VERSION (made on first use: about 1 GB and a minute each).
 test-blender: $(STAMP)
-	$(PY) -m pytest -m "blender_matrix or gui" --durations=15
+	$(PY) -m pytest -m blender_matrix --durations=15
+
+# Not finished, not in CI yet: the real Blender 4.3.2 program with its GUI under Xvfb (a Debian
+# trixie chroot, built on first use; root). It draws the panel and takes its first screenshot
+# (out/gui-screenshots/); pressing buttons through the event system crashes Blender so far.
+test-gui: $(STAMP)
+	$(PY) -m pytest -m gui --durations=15
 
 # Heavier runs, kept runnable: longer trainings and full-size renders.
 test-slow: $(STAMP)

@@ -23,7 +23,8 @@ from pathlib import Path
 
 CHROOT = Path(os.environ.get("NERF_BLENDER_GUI_CHROOT",
                              Path.home() / ".cache" / "nerf-from-blender" / "blender-gui-trixie"))
-PACKAGES = ("blender", "xvfb", "xauth", "x11-apps", "imagemagick")
+# python3-numpy: Debian's blender only recommends it, and the add-on (the voxeliser) needs it.
+PACKAGES = ("blender", "python3-numpy", "xvfb", "xauth", "x11-apps", "imagemagick")
 READY = ".nerf-ready"  # written last: a chroot without it is incomplete
 
 
@@ -91,6 +92,14 @@ def mounted(root: Path, same_paths: tuple[Path, ...] = (), host: bool = False) -
 def ensure_chroot(log=print) -> Path:
     """The cached chroot, built first if missing; raises with the reason when it cannot be."""
     if (CHROOT / READY).is_file():
+        missing = [p for p in PACKAGES if not (CHROOT / "var" / "lib" / "dpkg" / "info" / f"{p}.list").is_file()]
+        if missing:  # a chroot cached before a package was added to PACKAGES
+            log(f"apt-get install {' '.join(missing)}")
+            with mounted(CHROOT):
+                _run("chroot", CHROOT, "apt-get", "update", "-qq")
+                _run("chroot", CHROOT, "apt-get", "install", "-y", "-qq", "--no-install-recommends", *missing,
+                     env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})
+                _run("chroot", CHROOT, "apt-get", "clean")
         return CHROOT
     if os.geteuid() != 0:
         raise RuntimeError(f"building {CHROOT} needs root (debootstrap, mount, chroot)")

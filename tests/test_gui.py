@@ -74,7 +74,7 @@ def gui(tmp_path_factory):
             while not (chroot / "tmp" / ".X11-unix" / f"X{DISPLAY[1:]}").exists():
                 assert time.monotonic() < deadline and xvfb.poll() is None, "Xvfb did not start"
                 time.sleep(0.2)
-            blender = _in_chroot(chroot, work, "blender", "--factory-startup", "--enable-event-simulate",
+            blender = _in_chroot(chroot, work, "blender", "--factory-startup", "--enable-event-simulate", "--python-exit-code", "1",
                                  "--python", str(work / "gui_session.py"), "--", str(work), str(backend),
                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
             try:

@@ -250,11 +250,12 @@ def label_widths() -> None:
 
 
 def flow():
-    settings = bpy.context.scene.nerf
     bpy.ops.preferences.addon_enable(module=MODULE)
+    settings = bpy.context.scene.nerf
     preferences = bpy.context.preferences.addons[MODULE].preferences
     preferences.python_path = BACKEND_PYTHON
     log(f"enabled {MODULE}; backend {BACKEND_PYTHON}")
+    yield from key("ESC")  # the splash screen, which --factory-startup shows over the 3D View
     window, area, region = view3d()
     area.spaces.active.show_region_ui = True
     yield 1.0
