@@ -94,10 +94,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def _last_done_event(run: Path) -> dict | None:
     """The training's last ``done`` event (iteration, elapsed_s, reason), if it logged one."""
-    events = run / "events.jsonl"
-    if not events.is_file():
-        return None
-    done = [event for event in map(json.loads, events.read_text().splitlines()) if event.get("event") == "done"]
+    from .run_folder import RunFolder
+
+    done = [event for event in RunFolder(run).read_events() if event.get("event") == "done"]
     return done[-1] if done else None
 
 
