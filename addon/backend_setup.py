@@ -1,5 +1,5 @@
 """The backend's own Python: Blender's bundled Python has no torch, so training runs in a
-virtual environment the add-on creates ("Set up backend") or in any interpreter the user
+virtual environment the add-on creates ("Set Up Backend") or in any interpreter the user
 names in the preferences. Plain Python, no bpy: a thread does the work, the panel polls.
 """
 
@@ -26,14 +26,14 @@ def check_backend(python: str, timeout: float = 120) -> tuple[bool, str]:
     import json
 
     if not python or not Path(python).is_file():
-        return False, f"no Python at {python or '(not set)'}: set one in the preferences or press Set up backend"
+        return False, f"no Python at {python or '(not set)'}: set one in the preferences or press Set Up Backend"
     try:
         result = subprocess.run([python, "-c", CHECK_SCRIPT], capture_output=True, text=True, timeout=timeout)
     except (OSError, subprocess.TimeoutExpired) as exc:
         return False, f"{python} could not run: {exc}"
     if result.returncode != 0:
         last = (result.stderr.strip().splitlines() or ["no output"])[-1]
-        return False, f"{python} lacks the backend's packages ({last}); press Set up backend"
+        return False, f"{python} lacks the backend's packages ({last}); press Set Up Backend"
     facts = json.loads(result.stdout.strip().splitlines()[-1])
     device = "CUDA GPU" if facts["cuda"] else ("Apple GPU (MPS)" if facts["mps"] else "CPU only")
     return True, f"torch {facts['torch']}, {device}"

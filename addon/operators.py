@@ -25,7 +25,7 @@ BACKEND_TIMEOUT_S = 3600
 _jobs: dict[str, object] = {}  # folder → job (keeps the Popen that started it)
 status: dict[str, JobStatus] = {}  # folder → last polled status, drawn by the panel
 _setup: BackendSetup | None = None
-_scene_warnings: list[str] = []  # shown by Generate dataset's confirmation dialog
+_scene_warnings: list[str] = []  # shown by Generate Dataset's confirmation dialog
 
 
 # ---------------------------------------------------------------- where things are
@@ -43,7 +43,7 @@ def run_dir(context) -> Path:
 
 
 def managed_venv() -> Path:
-    """Where Set up backend puts the backend's virtual environment (the extension's user folder)."""
+    """Where Set Up Backend puts the backend's virtual environment (the extension's user folder)."""
     try:
         return Path(bpy.utils.extension_path_user(__package__, path="backend-venv", create=True))
     except (ValueError, AttributeError):  # not installed as an extension (a checkout)
@@ -79,7 +79,7 @@ def run_backend(context, *arguments: str) -> subprocess.CompletedProcess:
     """A short backend command (render, compare, report), waited for; its error is raised."""
     python = backend_python(context)
     if not python:
-        raise RuntimeError("no backend Python: press Set up backend (or set one in the add-on's preferences)")
+        raise RuntimeError("no backend Python: press Set Up Backend (or set one in the add-on's preferences)")
     result = subprocess.run([python, "-m", "nerf_backend", *arguments], capture_output=True, text=True,
                             timeout=BACKEND_TIMEOUT_S, env={**_environ(), "PYTHONPATH": str(sources.source_root())})
     if result.returncode != 0:

@@ -56,7 +56,7 @@ class NerfPreferences(bpy.types.AddonPreferences):
 
     python_path: StringProperty(
         name="Backend Python", subtype="FILE_PATH", default="",
-        description="The Python that runs training (needs torch). Empty: the one Set up backend makes")
+        description="The Python that runs training (needs torch). Empty: the one Set Up Backend makes")
 
     def draw(self, context):
         from . import operators

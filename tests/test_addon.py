@@ -18,7 +18,7 @@ from conftest import REPO_ROOT, SHARED_DIR, run_python
 
 PANELS = {"NERF_PT_dataset", "NERF_PT_dataset_rendering", "NERF_PT_training", "NERF_PT_training_preview",
           "NERF_PT_results", "NERF_PT_results_comparison"}
-# Every operator is run in the session except Set up backend, which would pip-install the
+# Every operator is run in the session except Set Up Backend, which would pip-install the
 # shipped requirements (a GPU build of torch); its work is tested through BackendSetup.
 OPERATORS = {"NERF_OT_generate_dataset", "NERF_OT_train", "NERF_OT_cancel_training", "NERF_OT_render_test_views",
              "NERF_OT_render_active_camera", "NERF_OT_compare", "NERF_OT_open_report", "NERF_OT_setup_backend"}
