@@ -122,10 +122,11 @@ class _Job:
             time.sleep(0.2)
         return None
 
-    def _ended_badly(self, finished: bool) -> JobStatus | None:
-        """A failed status when the process is gone without finishing its work."""
+    def _ended_badly(self, finished: bool, running: bool | None = None) -> JobStatus | None:
+        """A failed status when the process is gone without finishing its work (``running``:
+        whether it was alive when ``finished`` was decided, so that both describe one moment)."""
         code = self.returncode()
-        if finished or self.is_running():
+        if finished or (self.is_running() if running is None else running):
             return None
         if code is None and self.record() is None:
             return None  # never started here
@@ -133,7 +134,8 @@ class _Job:
         if code is not None and code < 0:
             reason = f"was killed by signal {-code}"
         tail = _tail(self.log_path)
-        return JobStatus("failed", error=f"the process {reason}." + (f"\n{tail}" if tail else ""))
+        # The process's own last words first: they name the problem; the exit code is secondary.
+        return JobStatus("failed", error=f"{tail}\n(the process {reason})" if tail else f"the process {reason}")
 
 
 def read_events(run: Path) -> list[dict]:
@@ -166,9 +168,11 @@ class TrainingJob(_Job):
 
     def start(self, python: str, source_root: Path, dataset: Path, preset: str, iterations: int | None = None,
               max_seconds: float | None = None, device: str = "auto", resume: bool = False,
-              overwrite: bool = False) -> None:
+              overwrite: bool = False, cpu_threads: int | None = None) -> None:
         command = [python, "-m", "nerf_backend", "train", str(dataset), "--out", str(self.run), "--no-progress",
                    "--device", device]
+        if cpu_threads is not None:
+            command += ["--cpu-threads", str(cpu_threads)]
         command += ["--resume"] if resume else ["--preset", preset]
         if iterations is not None:
             command += ["--iters", str(iterations)]
@@ -180,18 +184,21 @@ class TrainingJob(_Job):
         self._launch(command, env=env)
 
     def poll(self) -> JobStatus:
+        running = self.is_running()  # before the events: a process that ends meanwhile has written them all
         events = read_events(self.run)
         done = [e for e in events if e.get("event") == "done"]
         starts = [e for e in events if e.get("event") == "start"]
         last_start = events.index(starts[-1]) if starts else 0
-        finished = bool(done) and events.index(done[-1]) > last_start
-        failure = self._ended_badly(finished)
+        # A run just resumed still shows its last session's "done" until the new one logs its
+        # start: while the process lives, the run is running.
+        finished = bool(done) and events.index(done[-1]) > last_start and not running
+        failure = self._ended_badly(finished, running)
         errors = [e for e in events[last_start:] if e.get("event") == "error"]
         if failure is not None:
             if errors:
                 failure.error = errors[-1].get("message", "") + "\n" + failure.error
             return failure
-        if not events and not self.is_running():
+        if not events and not running:
             return JobStatus("idle")
         start = starts[-1] if starts else {}
         progress = [e for e in events if e.get("event") in ("train", "val", "checkpoint")]
@@ -248,8 +255,9 @@ class DatasetJob(_Job):
         self.record_path.write_text(json.dumps(data))
 
     def poll(self) -> JobStatus:
+        running = self.is_running()  # first: a process that ends meanwhile has written everything
         complete = all((self.folder / f"transforms_{split}.json").is_file() for split in self.SPLITS)
-        failure = self._ended_badly(complete)
+        failure = self._ended_badly(complete, running)
         if failure is not None:
             return failure
         record = self.record() or {}
@@ -257,9 +265,9 @@ class DatasetJob(_Job):
         expected = sum(views.values())
         written = sum(len(list((self.folder / split).glob("r_*.png"))) if (self.folder / split).is_dir() else 0
                       for split in self.SPLITS)
-        if complete and not self.is_running():
+        if complete and not running:
             return JobStatus("done", 1.0, f"{written} views written")
-        if not self.is_running() and written == 0:
+        if not running and written == 0:
             return JobStatus("idle")
         fraction = min(1.0, written / expected) if expected else 0.0
         return JobStatus("running", fraction, f"{written} of {expected or '?'} views rendered")

@@ -7,38 +7,35 @@ in sub-panels."""
 
 from __future__ import annotations
 
-import textwrap
-
 import bpy
 
 from . import operators
+from .ui_text import draw_text as _text
+from .ui_text import first_fitting
 
-# Characters per line of wrapped text at the default sidebar width (291 px at 1600×1000).
-WRAP = 44
-
-
-def _draw_status(layout, state, idle_text: str) -> None:
+def _draw_status(layout, context, state, idle_text: str) -> None:
     if state is None or state.state == "idle":
         layout.label(text=idle_text, icon="INFO")
         return
     if state.state == "running":
-        left = f", {state.seconds_left:.0f} s left" if state.seconds_left is not None else ""
-        layout.progress(factor=state.fraction, type="BAR", text=f"{state.detail}{left}")
+        left = f"{state.seconds_left:.0f} s left" if state.seconds_left is not None else ""
+        candidates = [", ".join(filter(None, (state.detail, left)))]
+        if state.iteration is not None:  # shorter forms for a narrow sidebar: a bar's text cannot wrap
+            psnr = f"{state.psnr:.1f} dB" if state.psnr is not None else ""
+            candidates += [", ".join(filter(None, (f"Iteration {state.iteration}", psnr, left))),
+                           ", ".join(filter(None, (str(state.iteration), psnr, left.replace(" left", "")))),
+                           str(state.iteration)]
+        layout.progress(factor=state.fraction, type="BAR", text=first_fitting(context, candidates))
     elif state.state == "failed":
         box = layout.box()
         box.alert = True
         box.label(text="Failed", icon="ERROR")
-        lines = [wrapped for line in state.error.splitlines() for wrapped in textwrap.wrap(line, WRAP) or [""]]
-        for line in lines[-8:]:
-            box.label(text=line)
+        _text(box, context, state.error)
     else:
         icon = "CHECKMARK" if state.state == "done" else "PAUSE"
-        for number, line in enumerate(textwrap.wrap(f"{state.state.capitalize()}: {state.detail}", WRAP)):
-            layout.label(text=line, icon=icon if number == 0 else "BLANK1")
+        _text(layout, context, f"{state.state.capitalize()}: {state.detail}", icon)
     if state.warning and state.state != "failed":
-        box = layout.box()
-        for number, line in enumerate(textwrap.wrap(state.warning, WRAP)[:6]):
-            box.label(text=line, icon="ERROR" if number == 0 else "BLANK1")
+        _text(layout.box(), context, state.warning, icon="ERROR", limit=6)
 
 
 def _value_row(layout, label: str, value: str) -> None:
@@ -74,7 +71,7 @@ class NERF_PT_dataset(_NerfPanel, bpy.types.Panel):
         col.prop(s, "test_views")
         layout.prop(s, "resolution")
         layout.operator("nerf.generate_dataset", icon="RENDER_STILL")
-        _draw_status(layout, operators.status.get(str(operators.dataset_dir(context))), "No dataset rendering")
+        _draw_status(layout, context, operators.status.get(str(operators.dataset_dir(context))), "No dataset rendering")
 
 
 class NERF_PT_dataset_rendering(_NerfPanel, bpy.types.Panel):
@@ -108,10 +105,10 @@ class NERF_PT_training(_NerfPanel, bpy.types.Panel):
         else:
             row.operator("nerf.train", icon="PLAY").resume = False
             row.operator("nerf.train", text="Resume", icon="FILE_REFRESH").resume = True
-        _draw_status(layout, state, "Not training")
+        _draw_status(layout, context, state, "Not training")
         setup = operators.status.get("backend-setup")
         if setup is not None:
-            _draw_status(layout, setup, "")
+            _draw_status(layout, context, setup, "")
         if not operators.backend_python(context):
             layout.operator("nerf.setup_backend", icon="CONSOLE")
 
@@ -129,7 +126,7 @@ class NERF_PT_training_preview(_NerfPanel, bpy.types.Panel):
             layout.label(text="Shown once training validates", icon="INFO")
             return
         layout.template_icon(icon_value=preview.preview_ensure().icon_id, scale=8.0)
-        layout.label(text=f"Latest validation view (image '{operators.PREVIEW_IMAGE}')")
+        _text(layout, context, f"Latest validation view (image '{operators.PREVIEW_IMAGE}')")
 
 
 class NERF_PT_results(_NerfPanel, bpy.types.Panel):
@@ -160,7 +157,7 @@ class NERF_PT_results_comparison(_NerfPanel, bpy.types.Panel):
         _value_row(col, "SSIM", f"{s.compare_ssim:.4f}")
         _value_row(col, "LPIPS", s.compare_lpips)
         if operators.COMPARISON_IMAGE in bpy.data.images:
-            layout.label(text=f"Side by side: image '{operators.COMPARISON_IMAGE}'", icon="IMAGE_DATA")
+            _text(layout, context, f"Side by side: image '{operators.COMPARISON_IMAGE}'", icon="IMAGE_DATA")
 
 
 CLASSES = (NERF_PT_dataset, NERF_PT_dataset_rendering, NERF_PT_training, NERF_PT_training_preview,

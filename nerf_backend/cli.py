@@ -50,6 +50,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     train.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
     train.add_argument("--no-progress", action="store_true", help="no progress bar")
+    train.add_argument("--cpu-threads", type=_positive_int, default=None, metavar="N",
+                       help="threads for work on the CPU (default: one per core); the add-on leaves Blender a core, "
+                            "since torch slows about 3x when another program takes one of the cores it uses")
 
     bench = sub.add_parser("bench", help="measure the speed/accuracy trade of presets on one dataset, or on "
                                          "every dataset of a suite (--suite)")
@@ -139,6 +142,10 @@ def _run(args: argparse.Namespace) -> int:
     if args.command == "train":
         from .trainer import TrainOptions, train
 
+        if args.cpu_threads is not None:
+            import torch
+
+            torch.set_num_threads(args.cpu_threads)
         summary = train(TrainOptions(
             dataset=args.dataset, run=args.out, preset=args.preset, iterations=args.iters,
             max_seconds=args.max_seconds, seed=args.seed, overrides=tuple(args.overrides), device=args.device, resume=args.resume,

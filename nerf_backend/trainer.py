@@ -306,7 +306,8 @@ def _train_locked(run: RunFolder, plan: _RunPlan, val_split: DatasetSplit | None
     poses = train_split.poses.to(device)
     height, width = rgba.shape[1:3]
     run.log_event("start", iteration=iteration, resumed=options.resume, preset=config.preset,
-                  device=str(device), target_iterations=config.iterations, max_seconds=max_seconds)
+                  device=str(device), cpu_threads=torch.get_num_threads(), target_iterations=config.iterations,
+                  max_seconds=max_seconds)
     val_psnr: float | None = None
     score: _ViewScore | None = None
     collapse: Verdict | None = None

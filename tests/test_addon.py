@@ -107,6 +107,8 @@ def test_train_returns_at_once_and_the_job_is_followed_to_the_end(session):
     assert running and any(0 < fraction < 1 for _, fraction, _ in running)
     assert train["final"]["state"] == "done", train["final"]
     assert "iteration 300" in train["final"]["detail"] and train["final"]["preview_image"]
+    # Blender keeps a core: torch trains on all the others (and on one where there is one).
+    assert train["final"]["cpu_threads"] == [max(1, (os.cpu_count() or 2) - 1)] == [train["final"]["cpu_threads_asked"]]
 
 
 def test_results_load_as_images_of_the_dataset_size(session):

@@ -47,6 +47,9 @@ def test_training_job_follows_cancels_resumes_and_reports_a_crash(tiny_demo_data
     reopened = TrainingJob(run)
     assert reopened.poll().state == "cancelled" and not reopened.is_running()
     reopened.start(sys.executable, REPO_ROOT, tiny_demo_dataset, "fast", iterations=stopped_at + 30, resume=True)
+    # Before the resumed process logs its start, the log still ends with the cancelled session's
+    # "done": the job is running all the same (the panel's timer stops on a job that is not).
+    assert reopened.poll().state == "running"
     reopened.wait(300)
     done = reopened.poll()
     assert done.state == "done" and done.iteration == stopped_at + 30 and done.fraction == 1.0

@@ -3,7 +3,7 @@ tests/blender_gui.py builds): installed from the zip, every panel state drawn, e
 pressed through Blender's event system, screenshots kept. The session itself is
 tests/blender_scripts/gui_session.py.
 
-Run by ``make test-blender`` (CI runs it after ``make test``); the screenshots are kept in
+Run by ``make test-gui`` (CI runs it after ``make test-blender``); the screenshots are kept in
 ``out/gui-screenshots/`` (or ``$NERF_GUI_SCREENSHOTS``) as the test's artifacts."""
 
 from __future__ import annotations
@@ -47,6 +47,15 @@ def _in_chroot(chroot: Path, work: Path, *command: str, **kwargs) -> subprocess.
                              "/usr/bin/env", "-C", str(work), *command], **kwargs)
 
 
+def _kill_processes_using(folder: Path) -> None:
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            if int(cmdline.parent.name) != os.getpid() and str(folder) in cmdline.read_bytes().decode(errors="replace"):
+                os.kill(int(cmdline.parent.name), 9)
+        except (OSError, ValueError):
+            continue
+
+
 @pytest.fixture(scope="module")
 def gui(tmp_path_factory):
     chroot = _chroot()
@@ -57,7 +66,7 @@ def gui(tmp_path_factory):
     shutil.copy(REPO_ROOT / "tests" / "blender_scripts" / "gui_session.py", work)
     # The backend's Python as seen from the chroot: the project's .venv on the host, through /host.
     backend = work / "backend-python"
-    backend.write_text(f'#!/bin/sh\nexec chroot /host /usr/bin/env -C "$PWD" "{sys.executable}" "$@"\n')
+    backend.write_text(f'#!/bin/sh\nexec /usr/sbin/chroot /host /usr/bin/env -C "$PWD" "{sys.executable}" "$@"\n')
     browser = work / "browser"  # records the URL instead of opening it
     browser.write_text(f'#!/bin/sh\necho "$1" >> "{work / "browser_urls.txt"}"\n')
     for script in (backend, browser):
@@ -85,12 +94,17 @@ def gui(tmp_path_factory):
         finally:
             xvfb.terminate()
             xvfb.wait(timeout=30)
+            _kill_processes_using(work)  # a job the session could not stop (it was killed, or timed out)
     (work / "console.txt").write_text(console)
     report = json.loads((work / "gui_report.json").read_text()) if (work / "gui_report.json").is_file() else {}
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    for png in (work / "screenshots").glob("[0-9]*.png"):
+    for old in ARTIFACTS.glob("*.png"):  # a former run's, which this one may not replace
+        old.unlink()
+    for png in [*(work / "screenshots").glob("[0-9]*.png"), *(work / "screenshots").glob("zz_*.png")]:
         shutil.copy(png, ARTIFACTS / png.name)
     shutil.copy(work / "console.txt", ARTIFACTS / "console.txt")
+    if (work / "gui_report.json").is_file():
+        shutil.copy(work / "gui_report.json", ARTIFACTS / "gui_report.json")
     return {"report": report, "console": console, "work": work}
 
 
@@ -110,6 +124,8 @@ def test_every_state_is_drawn_not_blank_and_the_panel_differs_between_states(gui
     assert set(STATES) <= set(shots), sorted(shots)
     for name in STATES:
         assert shots[name]["std"] > 0.05 and shots[name]["panel_std"] > 0.03, (name, shots[name])
+    # The results are shown where the user looks: an Image Editor, with the image in it.
+    assert [name for name in STATES if shots[name]["focus"] == "image editor"] == ["09_results", "10_compared"], shots
     panels = {name: np.load(gui["work"] / "screenshots" / f"{name}.panel.npy") for name in STATES}
     same = [(a, b) for a, b in zip(STATES, STATES[1:]) if np.array_equal(panels[a], panels[b])]
     assert not same, f"the panel looks the same in these consecutive states: {same}"
@@ -117,7 +133,8 @@ def test_every_state_is_drawn_not_blank_and_the_panel_differs_between_states(gui
 
 def test_failures_progress_and_results_reach_the_user(gui):
     report = gui["report"]
-    assert "transforms_train.json" in report["failed_error"], report["failed_error"]  # names the missing file
+    failed = report["failed_error"]
+    assert failed.startswith(str(gui["work"] / "dataset")) or "/dataset: dataset folder not found" in failed, failed
     fractions = [entry[1] for entry in report["progress"] if entry[0] == "train"]
     assert fractions[-1] > fractions[0] > 0, report["progress"]  # the bar moved
     assert report["cancelled_at"] > 0 and report["done"]["preview"]

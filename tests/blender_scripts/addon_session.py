@@ -95,7 +95,10 @@ while time.time() < deadline:
         break
     time.sleep(again)
 report["train"]["final"] = {"state": state.state, "detail": state.detail, "error": state.error,
-                            "preview_image": operators.PREVIEW_IMAGE in bpy.data.images}
+                            "preview_image": operators.PREVIEW_IMAGE in bpy.data.images,
+                            "cpu_threads": [e.get("cpu_threads") for e in sys.modules[f"{module}.jobs"].read_events(
+                                operators.run_dir(bpy.context)) if e.get("event") == "start"],
+                            "cpu_threads_asked": operators.training_cpu_threads()}
 save()
 
 # 4. results: test views as images, and the active camera against Cycles

@@ -97,18 +97,34 @@ def region_box(screen: np.ndarray) -> tuple[int, int, int, int]:
     return ox + region.x, oy + region.y, ox + region.x + region.width, oy + region.y + region.height
 
 
+def editor_box(screen: np.ndarray) -> tuple[int, int, int, int] | None:
+    """The Image Editor's rectangle in the screen image (rows bottom-up), in whichever window
+    shows one; None without one."""
+    for window in bpy.context.window_manager.windows:
+        for area in window.screen.areas:
+            if area.type == "IMAGE_EDITOR":
+                region = next(r for r in area.regions if r.type == "WINDOW")
+                # Without a window manager a window's x, y are its bottom-left corner on the screen.
+                x0, y0 = window.x + region.x, window.y + region.y
+                return max(x0, 0), max(y0, 0), min(x0 + region.width, screen.shape[1]), min(y0 + region.height, screen.shape[0])
+    return None
+
+
 def shot(name: str):
-    """A screenshot of state ``name``: kept as WORK/screenshots/NAME.png, with its panel crop's statistics."""
+    """A screenshot of state ``name``: kept as WORK/screenshots/NAME.png, with the statistics of
+    what the state is about: the sidebar, or the Image Editor the add-on opened."""
     redraw()
     yield 0.3
     redraw()
     path = SHOTS / f"{name}.png"
     screen = grab(path)
-    x0, y0, x1, y1 = region_box(screen)
+    editor = editor_box(screen)
+    x0, y0, x1, y1 = editor if editor is not None else region_box(screen)
     panel = screen[y0:y1, x0:x1]
     np.save(SHOTS / f"{name}.panel.npy", panel)
     report["shots"][name] = {"path": str(path), "std": float(screen.std()), "panel_std": float(panel.std()),
-                             "size": [screen.shape[1], screen.shape[0]], "panel_box": [x0, y0, x1, y1]}
+                             "size": [screen.shape[1], screen.shape[0]], "panel_box": [x0, y0, x1, y1],
+                             "focus": "image editor" if editor is not None else "sidebar"}
     log(f"screenshot {name}")
 
 
@@ -145,22 +161,25 @@ class _PanelSelf:
         self.layout = layout
 
 
-def locate(idname: str, text: str | None = None):
-    """Find the button by drawing it in the alert colour and looking at what changed; its
-    centre in window coordinates is left in report['clicks'][key]."""
-    key = f"{idname}:{text or ''}"
+def _probing_draw(original, matches):
+    # A closure, not a default argument: Blender passes a method as many arguments as its code
+    # declares, so draw(self, context, _original=...) would be called with a missing third one.
+    def draw(self, context):
+        original(_PanelSelf(_Probe(self.layout, matches)), context)
+    return draw
 
-    def matches(name, kwargs):
-        return name == idname and kwargs.get("text") == text
 
+def _find_alert_button(matches):
+    """One look: the panel drawn as it is, then again with the matching button in the alert
+    colour; the box (x0, y0, x1, y1, rows bottom-up, in the sidebar crop) of what turned red,
+    or None, and the sidebar's box in the screen image."""
+    redraw()  # the panel as it is now (a setting changed since the last draw moves buttons)
+    yield 0.3
+    redraw()
     before = grab(SHOTS / "_locate_before.png")
-    originals = {}
-    for cls in panel_classes():
-        originals[cls] = cls.draw
-
-        def draw(self, context, _original=cls.draw):
-            _original(_PanelSelf(_Probe(self.layout, matches)), context)
-        cls.draw = draw
+    originals = {cls: cls.draw for cls in panel_classes()}
+    for cls, original in originals.items():
+        cls.draw = _probing_draw(original, matches)
     try:
         redraw()
         yield 0.3
@@ -175,13 +194,44 @@ def locate(idname: str, text: str | None = None):
     crop = after[y0:y1, x0:x1]
     redness = crop[..., 0] - crop[..., 1:].max(axis=2)
     changed = (np.abs(crop - before[y0:y1, x0:x1]).max(axis=2) > 0.08) & (redness > 0.15)
+    # A button is a filled bar; the 3D View's red axis line, seen through the sidebar where a
+    # panel shrank, is a thin diagonal: keep rows and columns with many changed pixels.
+    changed &= (changed.sum(axis=1) >= 30)[:, None] & (changed.sum(axis=0) >= 8)[None, :]
     rows, columns = np.nonzero(changed)
-    if rows.size == 0:
-        raise AssertionError(f"button {key} is not drawn in the sidebar")
-    ox, oy = window_origin(before)
-    centre = (int(x0 + (columns.min() + columns.max()) / 2) - ox, int(y0 + (rows.min() + rows.max()) / 2) - oy)
-    report["clicks"][key] = {"centre": centre, "size": [int(columns.max() - columns.min() + 1),
-                                                        int(rows.max() - rows.min() + 1)]}
+    found = None if rows.size == 0 else (columns.min(), rows.min(), columns.max(), rows.max())
+    _locate_result[:] = [found, (x0, y0, x1, y1), window_origin(before)]
+
+
+_locate_result: list = []
+
+
+def locate(idname: str, text: str | None = None):
+    """Find the button by drawing it in the alert colour and looking at what changed,
+    scrolling the sidebar down (mouse wheel events) as a user would when it is below the
+    edge; its centre in window coordinates is left in report['clicks'][key]."""
+    key = f"{idname}:{text or ''}"
+
+    def matches(name, kwargs):
+        return name == idname and kwargs.get("text") == text
+
+    for attempt in range(8):
+        yield from _find_alert_button(matches)
+        found, (x0, y0, x1, y1), (ox, oy) = _locate_result
+        if found is not None and found[1] > 2:  # whole, not cut by the sidebar's lower edge
+            break
+        # Below the edge: scroll down, over the sidebar.
+        window = view3d()[0]
+        x, y = (x0 + x1) // 2 - ox, (y0 + y1) // 2 - oy
+        window.event_simulate(type="MOUSEMOVE", value="NOTHING", x=x, y=y)
+        for _ in range(4):
+            window.event_simulate(type="WHEELDOWNMOUSE", value="PRESS", x=x, y=y)
+        report.setdefault("scrolled", []).append(key)
+        yield 0.5
+    else:
+        raise AssertionError(f"button {key} is not drawn in the sidebar, even scrolled down")
+    cx0, cy0, cx1, cy1 = found
+    centre = (int(x0 + (cx0 + cx1) / 2) - ox, int(y0 + (cy0 + cy1) / 2) - oy)
+    report["clicks"][key] = {"centre": centre, "size": [int(cx1 - cx0 + 1), int(cy1 - cy0 + 1)]}
     yield 0.1
 
 
@@ -255,6 +305,9 @@ def flow():
     preferences = bpy.context.preferences.addons[MODULE].preferences
     preferences.python_path = BACKEND_PYTHON
     log(f"enabled {MODULE}; backend {BACKEND_PYTHON}")
+    ok, message = sys.modules[MODULE + ".backend_setup"].check_backend(BACKEND_PYTHON)
+    assert ok, f"the backend's Python cannot run from this Blender: {message}"
+    log(f"backend: {message}")
     yield from key("ESC")  # the splash screen, which --factory-startup shows over the 3D View
     window, area, region = view3d()
     area.spaces.active.show_region_ui = True
@@ -272,8 +325,9 @@ def flow():
     settings.dataset_dir = str(WORK / "dataset")
     settings.run_dir = str(WORK / "run_too_early")
     settings.train_views, settings.val_views, settings.test_views = 16, 2, 3
-    settings.resolution, settings.samples = 32, 4
-    settings.preset, settings.budget_kind, settings.budget_seconds = "fast", "TIME", 25.0
+    settings.resolution, settings.samples = 48, 128  # a few seconds of rendering: long enough to be seen
+    # An iteration budget: what the run reaches does not depend on the machine's speed.
+    settings.preset, settings.budget_kind, settings.budget_iterations = "fast", "ITERATIONS", 400
     label_widths()
     yield from shot("01_idle")
 
@@ -299,7 +353,7 @@ def flow():
     settings.run_dir = str(WORK / "run")
     yield from press("nerf.train", None)
     yield from wait(lambda: state_of(settings.run_dir) == "running" and (job(settings.run_dir).iteration or 0) > 0,
-                    300, "training to start")
+                    120, "training to start")
     for _ in range(6):
         report["progress"].append(["train", job(settings.run_dir).fraction, job(settings.run_dir).iteration])
         yield 1.0
@@ -319,12 +373,14 @@ def flow():
     yield from wait(lambda: "NeRF test r_0" in bpy.data.images, 300, "the test renders")
     report["render_test_views"] = {"windows": len(bpy.context.window_manager.windows),
                                    "editor_image": _editor_image()}
+    yield 1.0  # the editor zooms to fit once drawn
     yield from shot("09_results")
     yield from close_extra_windows()
     yield from press("nerf.compare", None)
     yield from wait(lambda: bool(settings.compare_lpips), 300, "the comparison")
     report["compare"] = {"psnr": settings.compare_psnr, "ssim": settings.compare_ssim, "lpips": settings.compare_lpips,
                          "windows": len(bpy.context.window_manager.windows), "editor_image": _editor_image()}
+    yield 1.0
     yield from shot("10_compared")
     yield from close_extra_windows()
     yield from shot("11_compare_numbers")
@@ -360,6 +416,14 @@ def main() -> None:
         except Exception:  # noqa: BLE001 - every failure goes to the report, then Blender quits
             report["error"] = traceback.format_exc()
             print(report["error"], flush=True)
+            report["status_at_error"] = {folder: repr(status) for folder, status in operators().status.items()}
+            for job in operators()._jobs.values():  # a backend left running would slow every later test
+                if job.is_running():
+                    job.kill()
+            try:
+                subprocess.run(["import", "-window", "root", str(SHOTS / "zz_at_error.png")], timeout=60)
+            except (OSError, subprocess.SubprocessError):
+                pass
         save()
         bpy.app.timers.register(quit_blender, first_interval=0.5)
         return None
