@@ -81,5 +81,4 @@ def renders_are_current(run: RunFolder, split: str) -> bool:
     if not record.exists() or not run.checkpoint_path.exists():
         return False
     rendered_iteration = json.loads(record.read_text()).get("iteration")
-    state = torch.load(run.checkpoint_path, map_location="cpu", weights_only=False)
-    return rendered_iteration == state["iteration"]
+    return rendered_iteration == run.load_checkpoint(torch.device("cpu"))["iteration"]

@@ -15,6 +15,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import pickle
 import time
 from pathlib import Path
 from typing import Any
@@ -23,6 +24,10 @@ import torch
 
 from .errors import RunError
 from .files import atomic_write, remove_stale_temporaries, write_json
+
+def _first_line(error: Exception) -> str:
+    return (str(error).strip().splitlines() or [type(error).__name__])[0]
+
 
 CONFIG_NAME = "config.json"
 EVENTS_NAME = "events.jsonl"
@@ -91,12 +96,18 @@ class RunFolder:
         atomic_write(self.checkpoint_path, lambda tmp: tmp.write_bytes(buffer.getbuffer()))
 
     def load_checkpoint(self, device: torch.device) -> dict:
+        """The checkpoint's data: tensors, numbers, strings, lists and dicts only
+        (``weights_only=True``), so that opening a run folder someone else made cannot run
+        code. A file holding anything else is refused with a one-line error."""
         if not self.checkpoint_path.is_file():
             raise RunError(f"{self.checkpoint_path}: no checkpoint to load")
         try:
-            return torch.load(self.checkpoint_path, map_location=device, weights_only=False)
+            return torch.load(self.checkpoint_path, map_location=device, weights_only=True)
+        except pickle.UnpicklingError:
+            raise RunError(f"{self.checkpoint_path}: refused: it holds Python objects, not only tensors and plain "
+                           f"data, and loading them could run code (this project's checkpoints hold data only)") from None
         except Exception as exc:  # torch raises several types for damaged files
-            raise RunError(f"{self.checkpoint_path}: cannot read checkpoint ({exc})") from None
+            raise RunError(f"{self.checkpoint_path}: cannot read checkpoint ({_first_line(exc)})") from None
 
     def acquire_lock(self) -> None:
         """Hold an exclusive OS lock on RUN/.lock for the life of this process; a second

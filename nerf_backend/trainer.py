@@ -252,6 +252,8 @@ def _plan_run(run: RunFolder, dataset: Path, train_split: DatasetSplit, options:
 def _train_locked(run: RunFolder, plan: _RunPlan, val_split: DatasetSplit | None, options: TrainOptions) -> TrainSummary:
     config, seed, max_seconds, device = plan.config, plan.seed, plan.max_seconds, plan.device
     train_split, ray_bounds, prior, decisions = plan.train_split, plan.ray_bounds, plan.prior, plan.decisions
+    # The checkpoint first: a resume it refuses (damaged, or holding code) leaves the run as it was.
+    state = run.load_checkpoint(device) if options.resume and run.checkpoint_path.exists() else None
     record = plan.record()
     run.write_config(record)
 
@@ -265,7 +267,6 @@ def _train_locked(run: RunFolder, plan: _RunPlan, val_split: DatasetSplit | None
     batch_generator = torch.Generator().manual_seed(seed)
     sample_generator = torch.Generator(device=device).manual_seed(seed + 1)
     iteration, train_seconds = 0, 0.0
-    state = run.load_checkpoint(device) if options.resume and run.checkpoint_path.exists() else None
     if state is not None:
         restart = state.get("restart", restart)
         model.match_state(state["model"])  # the grids' resolution at the checkpoint

@@ -672,3 +672,36 @@ def test_damaged_png_bytes(fuzz_dataset, data):
     document["frames"][1]["file_path"] = "./train/fuzz"
     _write_json(root / "transforms_png.json", document)
     _expect_valid_or_dataset_error(lambda: load_split(root, "png"), lambda split: _check_split(split, root))
+
+
+class _RunsCodeWhenUnpickled:
+    """What a malicious checkpoint could carry: unpickling it calls Path.touch(marker)."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+def test_a_checkpoint_carrying_a_python_object_is_refused_and_runs_nothing(trained_run, tiny_demo_dataset, tmp_path,
+                                                                          capsys):
+    """Checkpoints hold data only (weights_only=True): a run folder someone else made cannot
+    run code when it is opened, resumed or rendered."""
+    import shutil
+
+    import torch
+
+    run = tmp_path / "foreign_run"
+    shutil.copytree(trained_run, run)
+    marker = tmp_path / "code_ran"
+    state = torch.load(run / "checkpoint.pt", weights_only=True)  # the project's own: data only
+    state["payload"] = _RunsCodeWhenUnpickled(marker)
+    torch.save(state, run / "checkpoint.pt")
+    before = _snapshot(run)
+    for args in (["render", str(run), "--device", "cpu", "--no-progress"],
+                 ["train", str(tiny_demo_dataset), "--out", str(run), "--resume", "--iters", "5", "--no-progress"]):
+        code = main(args)
+        _assert_one_error_line(capsys.readouterr().err, str(run / "checkpoint.pt"), "refused", "could run code")
+        assert code == 2 and not marker.exists(), args
+    assert _snapshot(run) == before
