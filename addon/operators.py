@@ -390,15 +390,16 @@ def render_active_camera_nerf(context) -> Path:
 
 
 def _reporting_backend_errors(execute):
-    """An operator's ``execute`` whose backend failure (the backend's own one-line error, or
-    a timeout) is shown as an error report and cancels, instead of a traceback."""
+    """An operator's ``execute`` whose failure (the backend's own one-line error, a timeout,
+    the generator's error, a file that cannot be written) is shown as an error report and
+    cancels, instead of a traceback."""
 
     @functools.wraps(execute)
     def wrapped(self, context):
         try:
             return execute(self, context)
-        except (RuntimeError, subprocess.TimeoutExpired) as exc:
-            self.report({"ERROR"}, str(exc))
+        except (RuntimeError, OSError, subprocess.TimeoutExpired, sources.datasets_gen("options").DatasetGenError) as exc:
+            self.report({"ERROR"}, str(exc))  # the generator's errors too: Compare renders through it
             return {"CANCELLED"}
 
     return wrapped

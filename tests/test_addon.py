@@ -136,6 +136,12 @@ def test_active_camera_nerf_render_clears_the_psnr_floor_against_cycles(session)
     print(f"active camera: PSNR {compare['psnr']:.2f} dB, SSIM {compare['ssim']:.4f}, LPIPS {compare['lpips']}")
     assert compare["psnr"] >= COMPARE_PSNR_FLOOR_DB
     assert compare["lpips"] == "unavailable"  # no AlexNet weights on this machine: not a number
+    # Cycles rendered through the generator's settings journal: the scene's settings came back.
+    assert compare["scene_settings_kept"]
+    gpu = session["compare_gpu"]
+    assert gpu["scene_settings_kept"] and "Traceback" not in gpu["message"], gpu
+    if gpu["result"] == ["CANCELLED"]:  # no GPU here: the generator's own message, as a report
+        assert "found no GPU compute device" in gpu["message"], gpu
 
 
 def test_disables_and_uninstalls_cleanly(session):

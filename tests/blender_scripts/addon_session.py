@@ -121,11 +121,32 @@ camera.matrix_world = matrix
 bpy.context.scene.camera = camera
 report["render_active_camera"] = {"result": sorted(bpy.ops.nerf.render_active_camera()),
                                   "size": list(bpy.data.images["NeRF active camera"].size)}
+
+
+def scene_settings() -> tuple:
+    scene = bpy.context.scene
+    return (scene.render.engine, scene.render.resolution_x, scene.render.resolution_y, scene.render.film_transparent,
+            scene.render.filepath, scene.cycles.samples, scene.cycles.device, scene.cycles.use_denoising,
+            scene.view_settings.view_transform, scene.render.image_settings.file_format)
+
+
+settings_before_compare = scene_settings()
 report["compare"] = {"result": sorted(bpy.ops.nerf.compare()), "psnr": settings.compare_psnr,
                      "ssim": settings.compare_ssim, "lpips": settings.compare_lpips,
                      "images": {name: list(bpy.data.images[name].size) for name in
                                 ("Cycles active camera", "NeRF active camera", "NeRF difference", "NeRF comparison")
                                 if name in bpy.data.images}}
+# Compare renders through the generator's settings journal: the scene's own settings come back
+# (checked above and below), and a generator error (a GPU asked for where there is none) is a
+# report, not a traceback.
+report["compare"]["scene_settings_kept"] = scene_settings() == settings_before_compare
+settings.render_device = "GPU"
+try:
+    report["compare_gpu"] = {"result": sorted(bpy.ops.nerf.compare()), "message": ""}
+except RuntimeError as error:  # the bpy module turns an operator's error report into this
+    report["compare_gpu"] = {"result": ["CANCELLED"], "message": str(error)}
+report["compare_gpu"]["scene_settings_kept"] = scene_settings() == settings_before_compare
+settings.render_device = "CPU"
 save()
 
 # The report, written by the backend and opened (where there is a browser; none here).
