@@ -5,6 +5,7 @@ module), where the dataset is rendered in this process."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import os
@@ -258,6 +259,7 @@ class NERF_OT_generate_dataset(bpy.types.Operator):
     def draw(self, context):
         self.layout.label(text="The scene checks found:")
         for line in _scene_warnings:
+            # Less the dialog's margins and the icon.
             ui_text.draw_text(self.layout, context, str(line), icon="ERROR", width_px=WARNINGS_DIALOG_WIDTH - 50)
 
     def execute(self, context):
@@ -440,8 +442,6 @@ def render_active_camera_cycles(context, path: Path, width: int, height: int) ->
     generator's own code: its protocol settings (no denoiser, transparent film, Standard view,
     the dataset's samples and seed) at the dataset's size; the scene's settings are restored
     afterwards."""
-    import dataclasses
-
     blender_render = sources.datasets_gen("blender_render")
     generator = json.loads((dataset_dir(context) / "transforms_test.json").read_text()).get("generator", {})
     scene = context.scene

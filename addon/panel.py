@@ -13,6 +13,7 @@ from . import operators
 from .ui_text import draw_text as _text
 from .ui_text import first_fitting
 
+
 def _draw_status(layout, context, state, idle_text: str) -> None:
     if state is None or state.state == "idle":
         layout.label(text=idle_text, icon="INFO")
