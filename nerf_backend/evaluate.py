@@ -21,6 +21,7 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 
 from .dataset import DatasetSplit, composite
+from .error_images import ERROR_SCALE, error_heatmap
 from .errors import NerfError
 from .files import read_exr
 from .lpips_metric import Lpips, lpips_distance
@@ -165,7 +166,6 @@ def compare_images(reference: Path, render: Path, out_dir: Path, device: torch.d
     camera): PSNR, SSIM, LPIPS (or why not), and ``difference.png``, the error heatmap on the
     report's scale. Written to ``out_dir/compare.json``."""
     from .files import write_json, write_png
-    from .report import ERROR_SCALE, error_heatmap
 
     a, b = read_rgb(render), read_rgb(reference)
     if a.shape != b.shape:

@@ -23,15 +23,12 @@ from pathlib import Path
 import numpy as np
 
 from .dataset import load_split
+from .error_images import ERROR_COLOURMAP, ERROR_SCALE, error_heatmap
 from .errors import NerfError
 from .evaluate import METRICS_NAME, read_rgb
 from .files import write_png
 from .run_folder import RunFolder
 
-# Heatmaps share one fixed scale so that views and runs compare: mean absolute RGB error
-# per pixel, 0 (black) to ERROR_SCALE (white-yellow) and above.
-ERROR_SCALE = 0.25
-ERROR_COLOURMAP = "inferno"
 COMPARED_VIEWS = 6
 
 
@@ -100,13 +97,6 @@ def _short(value) -> str:
             return [rounded(x) for x in v]
         return v
     return value if isinstance(value, str) else json.dumps(rounded(value))
-
-
-def error_heatmap(rendered: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    import matplotlib
-
-    error = np.abs(rendered - reference).mean(axis=-1)
-    return matplotlib.colormaps[ERROR_COLOURMAP](np.clip(error / ERROR_SCALE, 0.0, 1.0))[..., :3]
 
 
 def _plot_error_scale(path: Path) -> None:
