@@ -171,8 +171,8 @@ def _probing_draw(original, matches):
 
 def _find_alert_button(matches):
     """One look: the panel drawn as it is, then again with the matching button in the alert
-    colour; the box (x0, y0, x1, y1, rows bottom-up, in the sidebar crop) of what turned red,
-    or None, and the sidebar's box in the screen image."""
+    colour. Returns the box (x0, y0, x1, y1, rows bottom-up, in the sidebar crop) of what
+    turned red, or None; the sidebar's box in the screen image; the window's origin there."""
     redraw()  # the panel as it is now (a setting changed since the last draw moves buttons)
     yield 0.3
     redraw()
@@ -199,10 +199,7 @@ def _find_alert_button(matches):
     changed &= (changed.sum(axis=1) >= 30)[:, None] & (changed.sum(axis=0) >= 8)[None, :]
     rows, columns = np.nonzero(changed)
     found = None if rows.size == 0 else (columns.min(), rows.min(), columns.max(), rows.max())
-    _locate_result[:] = [found, (x0, y0, x1, y1), window_origin(before)]
-
-
-_locate_result: list = []
+    return found, (x0, y0, x1, y1), window_origin(before)
 
 
 def locate(idname: str, text: str | None = None):
@@ -215,8 +212,7 @@ def locate(idname: str, text: str | None = None):
         return name == idname and kwargs.get("text") == text
 
     for attempt in range(8):
-        yield from _find_alert_button(matches)
-        found, (x0, y0, x1, y1), (ox, oy) = _locate_result
+        found, (x0, y0, x1, y1), (ox, oy) = yield from _find_alert_button(matches)
         if found is not None and found[1] > 2:  # whole, not cut by the sidebar's lower edge
             break
         # Below the edge: scroll down, over the sidebar.
