@@ -122,11 +122,11 @@ class _Job:
             time.sleep(0.2)
         return None
 
-    def _ended_badly(self, finished: bool, running: bool | None = None) -> JobStatus | None:
+    def _ended_badly(self, finished: bool, running: bool) -> JobStatus | None:
         """A failed status when the process is gone without finishing its work (``running``:
         whether it was alive when ``finished`` was decided, so that both describe one moment)."""
         code = self.returncode()
-        if finished or (self.is_running() if running is None else running):
+        if finished or running:
             return None
         if code is None and self.record() is None:
             return None  # never started here
