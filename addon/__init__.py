@@ -1,10 +1,11 @@
 """The Blender add-on (View3D › Sidebar › NeRF): generate a dataset, train, watch it learn,
 compare with Cycles.
 
-Blender-facing code (``properties``, ``operators``, ``panel``) only draws and calls; the
-job handling (``jobs``, ``backend_setup``) and the camera maths (``camera_mapping``) are
-plain Python that tests drive without Blender. The add-on never imports torch: training
-runs in the backend's own Python as a separate process.
+Blender-facing code (``properties``, ``operators`` with the buttons in ``dataset_ops``,
+``training_ops`` and ``results_ops``, ``job_timer``, ``paths``, ``images``, ``panel``) only
+draws and calls; the job handling (``jobs``, ``backend_setup``) and the camera maths
+(``camera_mapping``) are plain Python that tests drive without Blender. The add-on never
+imports torch: training runs in the backend's own Python as a separate process.
 """
 
 _MODULES = ("properties", "operators", "panel")

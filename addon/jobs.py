@@ -242,16 +242,16 @@ class DatasetJob(_Job):
     def __init__(self, out: Path) -> None:
         super().__init__(out)
 
-    def start(self, blender: str, blend_file: Path, source_root: Path, arguments: list[str]) -> None:
+    def start(self, blender: str, blend_file: Path, source_root: Path, arguments: list[str],
+              views: dict[str, int] | None = None) -> None:
+        """Render ``blend_file`` with the generator's ``arguments`` (its flags, less --out: this
+        job's folder); ``views``: how many views each split has (the progress), None if unknown."""
         script = Path(source_root) / "datasets_gen" / "generate.py"
-        record = {split: arguments[arguments.index(f"--{split}-views") + 1] for split in self.SPLITS
-                  if f"--{split}-views" in arguments}
-        self._views = {split: int(count) for split, count in record.items()}
         command = [blender, "-b", str(blend_file), "--python", str(script), "--", *arguments,
                    "--out", str(self.folder), "--no-progress"]
         self._launch(command)
         data = self.record() or {}
-        data["views"] = self._views
+        data["views"] = dict(views or {})
         self.record_path.write_text(json.dumps(data))
 
     def poll(self) -> JobStatus:

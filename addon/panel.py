@@ -1,5 +1,5 @@
 """View3D › Sidebar › NeRF: dataset, training, results, each with sub-panels. Drawing only;
-the buttons are in ``operators`` and the job state comes from its last poll.
+the buttons are in ``operators`` and the job state comes from ``job_timer``'s last poll.
 
 Blender's conventions: property split (label left, field right) so labels get a column of
 their own at any sidebar width, title-case labels, settings that are not needed every time
@@ -7,9 +7,13 @@ in sub-panels."""
 
 from __future__ import annotations
 
+import json
+
 import bpy
 
-from . import operators
+from .images import COMPARISON_IMAGE, PREVIEW_IMAGE
+from .job_timer import status
+from .paths import backend_python, dataset_dir, run_dir
 from .ui_text import draw_text as _text
 from .ui_text import first_fitting
 
@@ -72,7 +76,7 @@ class NERF_PT_dataset(_NerfPanel, bpy.types.Panel):
         col.prop(s, "test_views")
         layout.prop(s, "resolution")
         layout.operator("nerf.generate_dataset", icon="RENDER_STILL")
-        _draw_status(layout, context, operators.status.get(str(operators.dataset_dir(context))), "No dataset rendering")
+        _draw_status(layout, context, status.get(str(dataset_dir(context))), "No dataset rendering")
 
 
 class NERF_PT_dataset_rendering(_NerfPanel, bpy.types.Panel):
@@ -99,7 +103,7 @@ class NERF_PT_training(_NerfPanel, bpy.types.Panel):
         layout.row().prop(s, "budget_kind", expand=True)
         layout.prop(s, "budget_seconds" if s.budget_kind == "TIME" else "budget_iterations")
         layout.prop(s, "train_device")
-        state = operators.status.get(str(operators.run_dir(context)))
+        state = status.get(str(run_dir(context)))
         row = layout.row(align=True)
         if state is not None and state.state == "running":
             row.operator("nerf.cancel_training", icon="CANCEL")
@@ -107,10 +111,10 @@ class NERF_PT_training(_NerfPanel, bpy.types.Panel):
             row.operator("nerf.train", icon="PLAY").resume = False
             row.operator("nerf.train", text="Resume", icon="FILE_REFRESH").resume = True
         _draw_status(layout, context, state, "Not training")
-        setup = operators.status.get("backend-setup")
+        setup = status.get("backend-setup")
         if setup is not None:
             _draw_status(layout, context, setup, "")
-        if not operators.backend_python(context):
+        if not backend_python(context):
             layout.operator("nerf.setup_backend", icon="CONSOLE")
 
 
@@ -122,12 +126,12 @@ class NERF_PT_training_preview(_NerfPanel, bpy.types.Panel):
 
     def draw(self, context):
         layout = self.layout
-        preview = bpy.data.images.get(operators.PREVIEW_IMAGE)
+        preview = bpy.data.images.get(PREVIEW_IMAGE)
         if preview is None:
             layout.label(text="Shown once training validates", icon="INFO")
             return
         layout.template_icon(icon_value=preview.preview_ensure().icon_id, scale=8.0)
-        _text(layout, context, f"Latest validation view (image '{operators.PREVIEW_IMAGE}')")
+        _text(layout, context, f"Latest validation view (image '{PREVIEW_IMAGE}')")
 
 
 class NERF_PT_results(_NerfPanel, bpy.types.Panel):
@@ -150,15 +154,14 @@ class NERF_PT_results_comparison(_NerfPanel, bpy.types.Panel):
 
     def draw(self, context):
         s, layout = context.scene.nerf, self.layout
-        if not s.compare_lpips:
+        if not s.compare_metrics:
             layout.label(text="Compare with Cycles to see numbers", icon="INFO")
             return
         col = layout.column(align=True)
-        _value_row(col, "PSNR", f"{s.compare_psnr:.2f} dB")
-        _value_row(col, "SSIM", f"{s.compare_ssim:.4f}")
-        _value_row(col, "LPIPS", s.compare_lpips)
-        if operators.COMPARISON_IMAGE in bpy.data.images:
-            _text(layout, context, f"Side by side: image '{operators.COMPARISON_IMAGE}'", icon="IMAGE_DATA")
+        for row in json.loads(s.compare_metrics):
+            _value_row(col, row["label"], row["text"])
+        if COMPARISON_IMAGE in bpy.data.images:
+            _text(layout, context, f"Side by side: image '{COMPARISON_IMAGE}'", icon="IMAGE_DATA")
 
 
 CLASSES = (NERF_PT_dataset, NERF_PT_dataset_rendering, NERF_PT_training, NERF_PT_training_preview,

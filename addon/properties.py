@@ -6,12 +6,10 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-PRESETS = (
-    ("auto", "Auto", "Fast model shaped by the scene (bounds, materials, resolution): the best at equal time"),
-    ("fast", "Fast", "Factorised grids with empty-space skipping: minutes on a CPU"),
-    ("preview", "Preview", "A small NeRF MLP: the paper's method, scaled down"),
-    ("paper", "Paper", "The NeRF paper's model and settings: hours to days, GPU advised"),
-)
+from . import sources
+from .paths import backend_python
+
+PRESETS = sources.backend_presets()  # presets.json, the backend's own list
 DEVICES = (("auto", "Auto", "CUDA, then Apple's MPS, then the CPU"), ("cpu", "CPU", "The CPU"),
            ("cuda", "CUDA", "NVIDIA GPU"), ("mps", "MPS", "Apple GPU"))
 
@@ -46,9 +44,9 @@ class NerfSettings(bpy.types.PropertyGroup):
     budget_iterations: IntProperty(name="Iterations", default=3000, min=1, description="Training steps for the whole run")
     train_device: EnumProperty(name="Device", items=DEVICES, default="auto", description="What the backend trains on")
     # Results of the last comparison (shown in the panel).
-    compare_psnr: FloatProperty(name="PSNR", default=0.0, description="PSNR (dB) of the last comparison with Cycles")
-    compare_ssim: FloatProperty(name="SSIM", default=0.0, description="SSIM of the last comparison with Cycles")
-    compare_lpips: StringProperty(name="LPIPS", default="", description="LPIPS of the last comparison, or why it is unavailable")
+    # The last comparison's metrics as the backend lists them (compare.json's "metrics" table):
+    # JSON rows {"key", "label", "value", "text"}; "" before any comparison.
+    compare_metrics: StringProperty(name="Metrics", default="", description="The metrics of the last comparison with Cycles")
 
 
 class NerfPreferences(bpy.types.AddonPreferences):
@@ -59,11 +57,9 @@ class NerfPreferences(bpy.types.AddonPreferences):
         description="The Python that runs training (needs torch). Empty: the one Set Up Backend makes")
 
     def draw(self, context):
-        from . import operators
-
         layout = self.layout
         layout.prop(self, "python_path")
-        layout.label(text=f"In use: {operators.backend_python(context) or 'none yet'}")
+        layout.label(text=f"In use: {backend_python(context) or 'none yet'}")
         layout.operator("nerf.setup_backend")
 
 

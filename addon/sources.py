@@ -5,6 +5,7 @@ Plain Python, no bpy."""
 from __future__ import annotations
 
 import importlib
+import json
 import sys
 from pathlib import Path
 
@@ -33,3 +34,11 @@ def datasets_gen(module: str = ""):
 
 def backend_requirements() -> Path:
     return source_root() / "nerf_backend" / "requirements.txt"
+
+
+def backend_presets() -> list[tuple[str, str, str]]:
+    """The backend's training presets as ``(name, label, description)``, in its order, read
+    from the file the backend builds them from (the add-on never imports torch)."""
+    path = source_root() / "nerf_backend" / "configs" / "presets.json"
+    entries = json.loads(path.read_text(encoding="utf-8"))
+    return [(name, entry["label"], entry["description"]) for name, entry in entries.items()]

@@ -4,11 +4,13 @@ Pure (no bpy, standard library only): `trajectories` (camera rig and views), `in
 intrinsics of a Blender camera), `frame_fit` (the similarity into the protocol's frame),
 `scene_checks` (what refuses a scene), `materials` (view dependence and transparency),
 `depth_normals` and `exr` (the depth/normal files), `png_check`, `dataset_json` (the JSON
-documents), `options`, `output_dir` (folder, resume, progress file), `shards` (--merge),
-`builtin_scenes` (the registry of scenes built in code).
+documents), `options` (GeneratorOptions, with each one's flag and keyword), `output_dir`
+(folder, resume, progress file), `shards` (--merge), `builtin_scenes` (the registry of scenes
+built in code).
 Blender-facing: `scene_facts`, `scene_bounds`, `scene_state` (undoable changes), `blender_render`,
 `demo_scene` and `trap_scenes` (the scenes built in code), `suite` (--suite);
-`generator.generate_dataset` is the in-process entry point (the add-on passes the open scene).
+`generator.generate_dataset` is the in-process entry point (options as keywords; `scene` renders
+the open scene).
 Command lines: `python -m datasets_gen` and `blender -b [SCENE.blend] --python
 datasets_gen/generate.py -- ...`.
 

@@ -15,29 +15,22 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from typing import Callable, NoReturn, Optional, Sequence
+from typing import Any, Callable, NoReturn, Optional, Sequence
 
-from .builtin_scenes import BUILTIN_SCENES
-from .intrinsics import SENSOR_FITS, CameraSettings
 from .options import (
-    COLOR_MANAGEMENT,
-    DEMO_VARIANTS,
-    DEPTH_NORMALS,
-    DEVICES,
-    FRAMES,
+    DEFAULT_OPTIONS,
+    GROUPS,
+    SETTINGS,
     DatasetGenError,
     GeneratorOptions,
-    Shard,
-    parse_pixel_aspect,
+    Setting,
+    options_from_keywords,
 )
 
 PROG = "datasets_gen"
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
-DEFAULT_CAMERA = CameraSettings()
-#: Flags --use-scene-camera replaces (giving both would be ambiguous).
-CAMERA_FLAGS = ("resolution", "width", "height", "resolution_percentage", "lens", "sensor_width",
-                "sensor_height", "sensor_fit", "shift_x", "shift_y", "pixel_aspect")
+_CAMERA_GROUP, _LONG_RENDERS_GROUP = GROUPS[2], GROUPS[4]
 
 
 class _OneLineParser(argparse.ArgumentParser):
@@ -48,114 +41,58 @@ class _OneLineParser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The options' flags (options.SETTINGS, each parsed into its keyword; None when not given,
+    so that the defaults stay GeneratorOptions') and the CLI's own: --resolution, --suite,
+    --suite-scene, --merge and --no-progress."""
     parser = _OneLineParser(
         prog=PROG,
         description="Render a NeRF dataset (nerf_synthetic / Realistic Synthetic 360 protocol) "
         "from a .blend file or a scene built in code. Defaults are the protocol's.",
     )
-    parser.add_argument("scene", nargs="?", metavar="SCENE.blend", help="scene to render (or use --demo)")
-    parser.add_argument("--demo", action="store_true",
-                        help="render the built-in procedural demo scene (the same as --builtin demo)")
-    parser.add_argument("--demo-variant", choices=DEMO_VARIANTS, default="standard",
-                        help="standard, or diffuse: every demo material a Diffuse BSDF (default: standard; "
-                        "--demo --demo-variant diffuse is --builtin demo_diffuse)")
-    scenes = "; ".join(f"{scene.name}: {scene.what}" for scene in BUILTIN_SCENES.values())
-    parser.add_argument("--builtin", choices=tuple(BUILTIN_SCENES), metavar="NAME",
-                        help="render a scene built in code: " + scenes.replace("%", "%%"))
+    groups = {title: parser.add_argument_group(title) if title else parser for title in GROUPS}
+    groups[_CAMERA_GROUP].add_argument(
+        "--resolution", type=int, metavar="N",
+        help=f"square image size (default: {DEFAULT_OPTIONS.camera.resolution_x}; --width N --height N)")
+    for setting in SETTINGS:
+        if setting.flag is not None:
+            _add_setting(groups[setting.group], setting)
     parser.add_argument("--suite", metavar="DIR",
                         help="render the benchmark suite into DIR/NAME: every built-in trap scene, the demo and "
                         "each --suite-scene, with the other flags; complete datasets are kept, incomplete "
                         "ones resumed (no SCENE, --demo, --builtin or --out)")
     parser.add_argument("--suite-scene", action="append", default=[], metavar="SCENE.blend",
                         help="with --suite: also render this .blend into DIR/STEM (repeatable)")
-    parser.add_argument("--out", metavar="DIR", help="output folder (must be empty or new)")
     parser.add_argument("--merge", metavar="DIR",
                         help="join the shard JSON files in DIR into the dataset's JSON (no SCENE, no --out)")
-    parser.add_argument("--check", action="store_true",
-                        help="run the scene checks and print the scene profile (JSON); render nothing")
-
-    views = parser.add_argument_group("views (protocol: 100 / 100 / 200, upper hemisphere)")
-    views.add_argument("--train-views", type=int, default=100, metavar="N", help="default: 100")
-    views.add_argument("--val-views", type=int, default=100, metavar="N", help="default: 100")
-    views.add_argument("--test-views", type=int, default=200, metavar="N",
-                       help="default: 200 (the protocol's spiral; other counts keep its two turns)")
-    views.add_argument("--sphere", action="store_true",
-                       help="train/val views on the full sphere instead of the upper hemisphere")
-    views.add_argument("--seed", type=int, default=0, help="seed of the random views and of Cycles (default: 0)")
-
-    camera = parser.add_argument_group("camera (protocol: 800x800, 50 mm lens, 36 mm sensor, AUTO fit)")
-    camera.add_argument("--resolution", type=int, metavar="N", help="square image size (default: 800)")
-    camera.add_argument("--width", type=int, metavar="W", help="image width (with --height)")
-    camera.add_argument("--height", type=int, metavar="H", help="image height (with --width)")
-    camera.add_argument("--resolution-percentage", type=int, metavar="P", help="scales W and H (default: 100)")
-    camera.add_argument("--pixel-aspect", metavar="X:Y", help="pixel aspect ratio (default: 1:1)")
-    camera.add_argument("--lens", type=float, metavar="MM", help="focal length in mm (default: 50)")
-    camera.add_argument("--sensor-width", type=float, metavar="MM", help="default: 36")
-    camera.add_argument("--sensor-height", type=float, metavar="MM", help="default: 24")
-    camera.add_argument("--sensor-fit", choices=SENSOR_FITS, help="default: AUTO")
-    camera.add_argument("--shift-x", type=float, metavar="S", help="lens shift (default: 0)")
-    camera.add_argument("--shift-y", type=float, metavar="S", help="lens shift (default: 0)")
-    camera.add_argument("--use-scene-camera", action="store_true",
-                        help="take lens, sensor, shift, resolution and pixel aspect from the .blend's active "
-                        "camera and render settings (the poses stay the protocol's)")
-
-    render = parser.add_argument_group("rendering")
-    render.add_argument("--samples", type=int, default=128, metavar="N", help="Cycles samples (default: 128)")
-    render.add_argument("--device", default="CPU", choices=DEVICES,
-                        help="Cycles device; GPU = the first GPU backend with a device (default: CPU)")
-    render.add_argument("--frame", choices=FRAMES,
-                        help="fit: map the scene into the protocol's frame (default for .blend files); "
-                        "blender: keep Blender's world (default for --demo)")
-    render.add_argument("--depth-normals", choices=DEPTH_NORMALS, default="test",
-                        help="float depth and normal EXRs for no split, the test split, or all (default: test)")
-    render.add_argument("--color-management", choices=COLOR_MANAGEMENT, default="standard",
-                        help="standard: the protocol's Standard/None/0/1; scene: keep the file's (default: standard)")
-    render.add_argument("--allow-missing", action="store_true",
-                        help="render although images, libraries or other files are missing (recorded)")
-
-    run = parser.add_argument_group("long renders")
-    run.add_argument("--overwrite", action="store_true", help="replace the dataset in a non-empty --out folder")
-    run.add_argument("--resume", action="store_true",
-                     help="keep the views already written and verified in --out, render the rest")
-    run.add_argument("--shard", metavar="K/N", help="render only views with index %% N == K; then --merge")
-    run.add_argument("--no-progress", action="store_true", help="do not show progress on stderr")
+    groups[_LONG_RENDERS_GROUP].add_argument("--no-progress", action="store_true",
+                                             help="do not show progress on stderr")
     return parser
 
 
-def _camera_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) -> CameraSettings:
+def _add_setting(group: argparse._ActionsContainer, setting: Setting) -> None:
+    help_text = setting.help_text().replace("%", "%%")  # argparse %-formats help
+    if setting.positional:
+        group.add_argument(setting.keyword, nargs="?", metavar=setting.flag, help=help_text)
+    elif setting.kind is bool:
+        group.add_argument(setting.flag, dest=setting.keyword, action="store_true", default=None, help=help_text)
+    else:  # text that `parse` reads is parsed after argparse, so that its error is the option's own line
+        group.add_argument(setting.flag, dest=setting.keyword, type=str if setting.parse else setting.kind,
+                           choices=setting.choices or None, metavar=setting.metavar, help=help_text)
+
+
+def _given(args: argparse.Namespace) -> dict[str, Any]:
+    """The settings the command line states, by keyword."""
+    return {setting.keyword: getattr(args, setting.keyword) for setting in SETTINGS
+            if setting.flag is not None and getattr(args, setting.keyword) is not None}
+
+
+def _image_size(args: argparse.Namespace, parser: argparse.ArgumentParser) -> dict[str, int]:
+    """--resolution N is --width N --height N; --width and --height go together."""
     if args.resolution is not None and (args.width is not None or args.height is not None):
         parser.error("argument --resolution: not allowed with --width/--height")
     if (args.width is None) != (args.height is None):
         parser.error("arguments --width and --height must be given together")
-    if args.resolution is not None:
-        width = height = args.resolution
-    elif args.width is not None:
-        width, height = args.width, args.height
-    else:
-        width, height = DEFAULT_CAMERA.resolution_x, DEFAULT_CAMERA.resolution_y
-    aspect = (DEFAULT_CAMERA.pixel_aspect_x, DEFAULT_CAMERA.pixel_aspect_y)
-    if args.pixel_aspect is not None:
-        try:
-            aspect = parse_pixel_aspect(args.pixel_aspect)
-        except DatasetGenError as error:
-            parser.error(str(error))
-
-    def given(value: Optional[float], default: float) -> float:
-        return default if value is None else value
-
-    return CameraSettings(
-        lens_mm=given(args.lens, DEFAULT_CAMERA.lens_mm),
-        sensor_width_mm=given(args.sensor_width, DEFAULT_CAMERA.sensor_width_mm),
-        sensor_height_mm=given(args.sensor_height, DEFAULT_CAMERA.sensor_height_mm),
-        sensor_fit=args.sensor_fit or DEFAULT_CAMERA.sensor_fit,
-        shift_x=given(args.shift_x, DEFAULT_CAMERA.shift_x),
-        shift_y=given(args.shift_y, DEFAULT_CAMERA.shift_y),
-        resolution_x=width,
-        resolution_y=height,
-        resolution_percentage=int(given(args.resolution_percentage, DEFAULT_CAMERA.resolution_percentage)),
-        pixel_aspect_x=aspect[0],
-        pixel_aspect_y=aspect[1],
-    )
+    return {} if args.resolution is None else {"width": args.resolution, "height": args.resolution}
 
 
 def options_from_args(
@@ -166,46 +103,19 @@ def options_from_args(
     `blender_file` is the file a `blender -b SCENE.blend` session opened: rendered when neither
     SCENE.blend nor --demo is given.
     """
-    if args.use_scene_camera:
-        given = [name for name in CAMERA_FLAGS if getattr(args, name) is not None]
-        if given:
-            parser.error(f"argument --{given[0].replace('_', '-')}: not allowed with --use-scene-camera")
-    if not args.out and not args.check:
+    given = _given(args)
+    if given.get("use_scene_camera"):
+        camera = ["--resolution"] * (args.resolution is not None) + [
+            setting.flag for setting in SETTINGS if setting.is_camera and setting.keyword in given]
+        if camera:
+            parser.error(f"argument {camera[0]}: not allowed with --use-scene-camera")
+    if not given.get("out_dir") and not given.get("check_only"):
         parser.error("the following arguments are required: --out")
-    shard = None
-    if args.shard is not None:
-        try:
-            shard = Shard.parse(args.shard)
-        except DatasetGenError as error:
-            parser.error(str(error))
-    open_scene = args.scene is None and not args.demo and args.builtin is None and bool(blender_file)
-    options = GeneratorOptions(
-        out_dir=args.out or "",
-        demo=args.demo,
-        demo_variant=args.demo_variant,
-        builtin=args.builtin,
-        blend_path=blender_file if open_scene else args.scene,
-        open_scene=open_scene,
-        train_views=args.train_views,
-        val_views=args.val_views,
-        test_views=args.test_views,
-        camera=_camera_from_args(args, parser),
-        use_scene_camera=args.use_scene_camera,
-        samples=args.samples,
-        seed=args.seed,
-        full_sphere=args.sphere,
-        device=args.device,
-        frame=args.frame,
-        depth_normals=args.depth_normals,
-        allow_missing=args.allow_missing,
-        color_management=args.color_management,
-        overwrite=args.overwrite,
-        resume=args.resume,
-        shard=shard,
-        check_only=args.check,
-    )
+    given.update(_image_size(args, parser))
+    if "blend_path" not in given and not given.get("demo") and "builtin" not in given and blender_file:
+        given.update(blend_path=blender_file, open_scene=True)
     try:
-        return options.validate()
+        return options_from_keywords(**given).validate()
     except DatasetGenError as error:
         parser.error(str(error))
 
@@ -215,8 +125,8 @@ def main(argv: Optional[Sequence[str]] = None, blender_file: str = "") -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.merge is not None:
-        extra = [flag for flag, value in (("SCENE.blend", args.scene), ("--demo", args.demo),
-                                          ("--builtin", args.builtin), ("--out", args.out), ("--suite", args.suite))
+        extra = [flag for flag, value in (("SCENE.blend", args.blend_path), ("--demo", args.demo),
+                                          ("--builtin", args.builtin), ("--out", args.out_dir), ("--suite", args.suite))
                  if value]
         if extra:
             parser.error(f"--merge DIR takes no {extra[0]}")
@@ -239,13 +149,14 @@ def _suite(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     from .suite import plan_suite, run_suite
 
     extra = [flag for flag, value in (
-        ("SCENE.blend", args.scene), ("--demo", args.demo), ("--builtin", args.builtin), ("--out", args.out),
-        ("--check", args.check), ("--shard", args.shard), ("--demo-variant", args.demo_variant != "standard"),
+        ("SCENE.blend", args.blend_path), ("--demo", args.demo), ("--builtin", args.builtin), ("--out", args.out_dir),
+        ("--check", args.check_only), ("--shard", args.shard),
+        ("--demo-variant", args.demo_variant not in (None, DEFAULT_OPTIONS.demo_variant)),
     ) if value]
     if extra:
         parser.error(f"--suite DIR takes no {extra[0]} (it renders {', '.join(SUITE_BUILTINS)} and each --suite-scene)")
     # The shared flags are checked once, on the suite's first scene; each scene then gets its own.
-    first = argparse.Namespace(**{**vars(args), "builtin": SUITE_BUILTINS[0], "out": args.suite})
+    first = argparse.Namespace(**{**vars(args), "builtin": SUITE_BUILTINS[0], "out_dir": args.suite})
     template = options_from_args(first, parser)
     try:
         plan = plan_suite(template, args.suite, args.suite_scene)

@@ -1,7 +1,7 @@
 """Render a nerf_synthetic-style dataset from a built-in scene, a .blend or the open scene.
 
-Both command lines (`python -m datasets_gen`, `blender -b --python datasets_gen/generate.py`)
-and the add-on call `run` (the add-on through `generate_dataset`).  Order of work: validate,
+Both command lines (`python -m datasets_gen`, `blender -b --python datasets_gen/generate.py`),
+`generate_dataset` and the add-on call `run`, with GeneratorOptions.  Order of work: validate,
 check the output folder, load the scene, check it (refusing before anything is written),
 fit it into the protocol's frame, voxelise it (the occupancy prior, written before the views),
 force the protocol's render settings (undone afterwards), then render every view (each file
@@ -34,7 +34,7 @@ from .frame_fit import (
 )
 from .intrinsics import CameraSettings, Intrinsics, ray_length_factors
 from .materials import classify_material
-from .options import SPLITS, DatasetGenError, GeneratorOptions, Shard, validate_camera
+from .options import SPLITS, DatasetGenError, GeneratorOptions, options_from_keywords, validate_camera
 from .output_dir import (
     PRIOR_NAME,
     PROFILE_NAME,
@@ -59,83 +59,24 @@ GENERATOR_VERSION = 2
 
 
 def generate_dataset(
-    out_dir: str = "",
-    *,
-    demo: bool = False,
-    demo_variant: str = "standard",
-    builtin: Optional[str] = None,
-    blend_path: Optional[str] = None,
-    scene: Any = None,
-    train_views: int = 100,
-    val_views: int = 100,
-    test_views: int = 200,
-    width: int = 800,
-    height: int = 800,
-    resolution_percentage: int = 100,
-    lens: float = 50.0,
-    sensor_width: float = 36.0,
-    sensor_height: float = 24.0,
-    sensor_fit: str = "AUTO",
-    shift_x: float = 0.0,
-    shift_y: float = 0.0,
-    pixel_aspect: Sequence[float] = (1.0, 1.0),
-    use_scene_camera: bool = False,
-    samples: int = 128,
-    seed: int = 0,
-    full_sphere: bool = False,
-    device: str = "CPU",
-    frame: Optional[str] = None,
-    depth_normals: str = "test",
-    allow_missing: bool = False,
-    color_management: str = "standard",
-    overwrite: bool = False,
-    resume: bool = False,
-    shard: Optional[str] = None,
-    check_only: bool = False,
-    progress: bool = True,
+    out_dir: str = "", *, scene: Any = None, progress: bool = True, **options: Any
 ) -> dict[str, Any]:
     """Render a dataset into `out_dir`; return the scene profile it wrote.
 
-    Give exactly one of `demo=True`, `builtin` (a name in builtin_scenes), `blend_path`, or
-    `scene` (a bpy Scene already open in this session, e.g. the add-on's `bpy.context.scene`:
-    rendered without opening any file, and every setting changed for the render is restored
-    afterwards).  Opening `blend_path` replaces the current session's file; a built-in scene is
-    added to it.  `check_only` runs the scene checks and returns the profile without rendering
-    or writing anything.  Raises DatasetGenError for bad input.
+    `options` are the settings by keyword, as options.SETTINGS names them (train_views=10,
+    width=64, height=48, lens=35.0, pixel_aspect=(2, 1), full_sphere=True, shard="0/4", ...;
+    the command line's flags, see options_from_keywords).  Give exactly one of `demo=True`,
+    `builtin` (a name in builtin_scenes), `blend_path`, or `scene` (a bpy Scene already open in
+    this session, e.g. the add-on's `bpy.context.scene`: rendered without opening any file, and
+    every setting changed for the render is restored afterwards).  Opening `blend_path`
+    replaces the current session's file; a built-in scene is added to it.  `check_only` runs the
+    scene checks and returns the profile without rendering or writing anything.  Raises
+    DatasetGenError for bad input, TypeError naming an unknown keyword.
     """
-    if scene is not None and blend_path is not None:
+    if scene is not None and options.get("blend_path") is not None:
         raise DatasetGenError("give blend_path or scene (the open scene), not both")
-    options = GeneratorOptions(
-        out_dir=out_dir,
-        demo=demo,
-        demo_variant=demo_variant,
-        builtin=builtin,
-        blend_path=blend_path,
-        open_scene=scene is not None,
-        train_views=train_views,
-        val_views=val_views,
-        test_views=test_views,
-        camera=CameraSettings(
-            lens_mm=lens, sensor_width_mm=sensor_width, sensor_height_mm=sensor_height, sensor_fit=sensor_fit,
-            shift_x=shift_x, shift_y=shift_y, resolution_x=width, resolution_y=height,
-            resolution_percentage=resolution_percentage, pixel_aspect_x=pixel_aspect[0],
-            pixel_aspect_y=pixel_aspect[1],
-        ),
-        use_scene_camera=use_scene_camera,
-        samples=samples,
-        seed=seed,
-        full_sphere=full_sphere,
-        device=device,
-        frame=frame,
-        depth_normals=depth_normals,
-        allow_missing=allow_missing,
-        color_management=color_management,
-        overwrite=overwrite,
-        resume=resume,
-        shard=Shard.parse(shard) if shard else None,
-        check_only=check_only,
-    )
-    return run(options, progress=progress, scene=scene)
+    return run(options_from_keywords(out_dir=out_dir, open_scene=scene is not None, **options),
+               progress=progress, scene=scene)
 
 
 def split_poses(options: GeneratorOptions, split: str) -> list[trajectories.RigPose]:

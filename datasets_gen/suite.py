@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from typing import Any, Optional, Sequence
 
 from .builtin_scenes import SUITE_BUILTINS, builtin_scene
-from .options import SPLITS, DatasetGenError, GeneratorOptions
+from .options import DEFAULT_OPTIONS, SPLITS, DatasetGenError, GeneratorOptions
 from .output_dir import read_json, require_same_settings, transforms_name
 
 PROG = "datasets_gen --suite"
@@ -47,8 +47,9 @@ def plan_suite(template: GeneratorOptions, suite_dir: str, blend_paths: Sequence
     two scenes of the same name (before anything is rendered)."""
     if os.path.exists(suite_dir) and not os.path.isdir(suite_dir):
         raise DatasetGenError(f"--suite: {suite_dir} exists and is not a folder")
-    common = dict(demo=False, demo_variant="standard", builtin=None, blend_path=None, open_scene=False,
-                  resume=False, shard=None, check_only=False)
+    # The template's scene source and its one-dataset settings, back to the defaults.
+    common = {name: getattr(DEFAULT_OPTIONS, name) for name in (
+        "demo", "demo_variant", "builtin", "blend_path", "open_scene", "resume", "shard", "check_only")}
     plan = [SuiteScene(name, dataclasses.replace(template, **{**common, "builtin": name,
                                                               "out_dir": os.path.join(suite_dir, name)}))
             for name in SUITE_BUILTINS]

@@ -7,7 +7,20 @@ import json
 import sys
 from pathlib import Path
 
-from .errors import NerfError
+import torch
+
+from .bench import DEFAULT_PRESETS, Variant, ablation_variants, run_bench, run_suite, step_cost
+from .configs.presets import PRESETS
+from .core.devices import resolve_device
+from .core.errors import NerfError
+from .data.run_folder import RunFolder
+from .evaluation.evaluate import compare_images, evaluate_renders, evaluate_run
+from .evaluation.inference import render_cameras, render_split
+from .evaluation.report import write_report
+from .metrics.registry import summary_line
+from .models.base import Model
+from .models.marched import MarchedModel
+from .training.trainer import TrainOptions, train
 
 # `train`'s exit status when the run ended on a model collapsed to the blank image (bad input: 2).
 EXIT_COLLAPSED = 3
@@ -28,10 +41,6 @@ def _positive_float(text: str) -> float:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .config import PRESETS
-    from .models import GRID_RENDER_CHUNK
-    from .render_views import DEFAULT_CHUNK
-
     parser = argparse.ArgumentParser(prog="python -m nerf_backend", description="Train, render, score and benchmark NeRFs of Blender scenes.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -92,8 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--split", default="test")
     render.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
     render.add_argument("--chunk", type=_positive_int, default=None,
-                        help=f"rays per forward pass; bounds memory (default: the model's, {DEFAULT_CHUNK} "
-                             f"for NeRF MLPs, {GRID_RENDER_CHUNK} for the grid model)")
+                        help=f"rays per forward pass; bounds memory (default: the model's, {Model.render_chunk} "
+                             f"for NeRF MLPs, {MarchedModel.render_chunk} for marched models)")
     render.add_argument("--cameras", type=Path, default=None,
                         help="render these cameras instead (a transforms JSON with w, h and intrinsics; no images)")
     render.add_argument("--out", type=Path, default=None, help="with --cameras: the output folder")
@@ -136,15 +145,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from .devices import resolve_device
-    from .run_folder import RunFolder
-
     if args.command == "train":
-        from .trainer import TrainOptions, train
-
         if args.cpu_threads is not None:
-            import torch
-
             torch.set_num_threads(args.cpu_threads)
         summary = train(TrainOptions(
             dataset=args.dataset, run=args.out, preset=args.preset, iterations=args.iters,
@@ -167,15 +169,11 @@ def _run(args: argparse.Namespace) -> int:
         return 0
 
     if args.command == "bench":
-        from .bench import DEFAULT_PRESETS, Variant, ablation_variants, run_bench
-
         names = (args.presets or ("" if args.ablations else DEFAULT_PRESETS)).split(",")
         names = [n for n in names if n] + (ablation_variants(args.ablations) if args.ablations else [])
         if (args.dataset is None) == (args.suite is None):
             raise NerfError("bench: give a DATASET or --suite PATH ... (not both)")
         if args.suite is not None:
-            from .bench import run_suite
-
             run_suite(args.suite, [Variant.parse(n) for n in names], args.out, args.budget_seconds, args.iters,
                       points=args.points, curve_views=args.curve_views, seed=args.seed, device=args.device,
                       overwrite=args.overwrite)
@@ -191,8 +189,6 @@ def _run(args: argparse.Namespace) -> int:
         return 0
 
     if args.command == "bench-step":
-        from .bench import step_cost
-
         report = step_cost(args.dataset, args.preset, args.steps, args.out, seed=args.seed, rays=args.rays,
                            overwrite=args.overwrite)
         per = report["seconds_per_iteration"]
@@ -203,32 +199,23 @@ def _run(args: argparse.Namespace) -> int:
         return 0
 
     if args.command == "report":
-        from .report import write_report
-
         page = write_report(args.results, args.out, split=args.split)
         print(f"report: {page}")
         return 0
 
-    from .evaluate import compare_images, evaluate_renders, evaluate_run
-
     device = resolve_device(args.device)
     if args.command == "compare":
         result = compare_images(args.reference, args.render, args.out, device, args.lpips_weights, args.lpips_linear)
-        lpips = f"{result['lpips']:.4f}" if result["lpips"] is not None else "unavailable"
-        print(f"PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}, LPIPS {lpips}; "
+        print(f"{summary_line(result)}; "
               f"written {args.out / 'compare.json'}, {args.out / 'difference.png'}")
         return 0
     if args.command == "render" and args.cameras is not None:
-        from .inference import render_cameras
-
         if args.out is None:
             raise NerfError("render --cameras: give --out, the folder for the images")
         paths = render_cameras(RunFolder(args.run), args.cameras, args.out, device, chunk=args.chunk)
         print(f"rendered {len(paths)} views into {args.out}")
         return 0
     if args.command == "render":
-        from .inference import render_split
-
         out = render_split(RunFolder(args.run), args.split, device, chunk=args.chunk, progress=not args.no_progress,
                            scale=args.scale)
         record = json.loads((out / "renders.json").read_text())

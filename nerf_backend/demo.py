@@ -17,6 +17,8 @@ import sys
 import time
 from pathlib import Path
 
+from .data.run_folder import RunFolder
+
 SPLITS = ("train", "val", "test")
 
 
@@ -94,8 +96,6 @@ def main(argv: list[str] | None = None) -> int:
 
 def _last_done_event(run: Path) -> dict | None:
     """The training's last ``done`` event (iteration, elapsed_s, reason), if it logged one."""
-    from .run_folder import RunFolder
-
     done = [event for event in RunFolder(run).read_events() if event.get("event") == "done"]
     return done[-1] if done else None
 

@@ -40,7 +40,8 @@ def extension_zip(tmp_path_factory):
 def test_the_zip_holds_the_addon_and_both_packages_and_nothing_else(extension_zip):
     names = zipfile.ZipFile(extension_zip).namelist()
     assert "blender_manifest.toml" in names and "__init__.py" in names and "operators.py" in names
-    assert "nerf_backend/trainer.py" in names and "datasets_gen/generate.py" in names
+    assert "nerf_backend/training/trainer.py" in names and "datasets_gen/generate.py" in names
+    assert "nerf_backend/configs/presets.json" in names  # data files travel with the code
     assert "nerf_backend/requirements.txt" in names
     assert not [n for n in names if "__pycache__" in n or n.startswith("tests/") or n.endswith(".pyc")]
 

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import torch
 
-from nerf_backend.auto import auto_config
-from nerf_backend.cameras import Intrinsics
-from nerf_backend.config import PRESETS, with_overrides
-from nerf_backend.dataset import DatasetSplit, SceneBounds
+from nerf_backend.training.auto import auto_config
+from nerf_backend.core.cameras import Intrinsics
+from nerf_backend.configs.presets import PRESETS
+from nerf_backend.configs.train_config import with_overrides
+from nerf_backend.core.scene_bounds import SceneBounds
+from nerf_backend.data.dataset import DatasetSplit
 
 BOX = SceneBounds((-1.0, -1.0, -0.25), (1.0, 1.0, 0.25))
 

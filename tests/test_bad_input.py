@@ -29,11 +29,11 @@ from PIL import Image
 
 from conftest import run_python
 from nerf_backend.cli import main
-from nerf_backend.dataset import (
+from nerf_backend.data.dataset import (
     MAX_IMAGE_SIDE, CameraPath, DatasetSplit, SceneBounds, load_cameras, load_scene_bounds, load_scene_profile,
     load_split,
 )
-from nerf_backend.errors import DatasetError
+from nerf_backend.core.errors import DatasetError
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 DAMAGED_VIEW = 3  # the training view each image case damages: train/r_3.png

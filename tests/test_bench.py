@@ -16,9 +16,9 @@ from PIL import Image
 
 from conftest import REPO_ROOT, run_python
 from nerf_backend.bench import Variant, ablation_order, ablation_variants, time_to_reach
-from nerf_backend.config import PRESETS
-from nerf_backend.fields import NerfField
-from nerf_backend.plain_nerf import PlainMLP, fourier_features
+from nerf_backend.configs.presets import PRESETS
+from nerf_backend.fields.mlp_field import NerfField
+from nerf_backend.bench.plain_nerf import PlainMLP, fourier_features
 
 
 def test_short_bench_writes_json_table_and_plot(tiny_demo_dataset, tmp_path):

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from nerf_backend.cameras import Intrinsics, camera_rays, pixel_centres, project_points, ray_box_intersection
+from nerf_backend.core.cameras import Intrinsics, camera_rays, pixel_centres, project_points, ray_box_intersection
 
 
 def _look_at(position, target=(0.0, 0.0, 0.0)):

@@ -27,8 +27,8 @@ import pytest
 
 from addon.jobs import TrainingJob
 from conftest import run_python
-from nerf_backend.dataset import load_split
-from nerf_backend.metrics import psnr
+from nerf_backend.data.dataset import load_split
+from nerf_backend.metrics.image_metrics import psnr
 
 SMALL_SPHERE_SCENE = textwrap.dedent("""
     import sys, bpy
@@ -76,7 +76,7 @@ def test_fast_preset_learns_the_small_object_instead_of_a_blank_image(small_obje
     # scores the blank image's PSNR, so 8 dB above it cannot be one.
     assert metrics["psnr"] > blank + 8.0
     # And the object is there: the NeRF's opacity covers about what the alpha covers.
-    from nerf_backend.files import read_exr
+    from nerf_backend.core.files import read_exr
 
     opacity = np.mean([read_exr(run / "renders" / "test" / f"{p.stem}_depth.exr")["A"].mean() for p in test.image_paths])
     coverage = test.rgba[..., 3].float().div(255).mean().item()

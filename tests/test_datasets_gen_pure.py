@@ -4,6 +4,7 @@ classification, EXR/PNG files, depth conversion, output folder decisions, shard 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -16,8 +17,9 @@ import OpenEXR
 import pytest
 from PIL import Image
 
-from datasets_gen import exr
+from datasets_gen import exr, generate_dataset
 from datasets_gen import trajectories as tr
+from datasets_gen.cli import build_parser, options_from_args
 from datasets_gen.cli import main as cli_main
 from datasets_gen.depth_normals import depth_channels, normal_channels
 from datasets_gen.frame_fit import (
@@ -29,7 +31,16 @@ from datasets_gen.frame_fit import (
 )
 from datasets_gen.intrinsics import CameraSettings, ray_length_factors
 from datasets_gen.materials import choose_output_node, classify_material
-from datasets_gen.options import DatasetGenError, GeneratorOptions, Shard, parse_pixel_aspect
+from datasets_gen.options import (
+    DEFAULT_OPTIONS,
+    SETTINGS,
+    DatasetGenError,
+    GeneratorOptions,
+    Shard,
+    options_from_keywords,
+    options_to_argv,
+    parse_pixel_aspect,
+)
 from datasets_gen.output_dir import (
     check_output_dir,
     remove_stale_frames,
@@ -513,3 +524,67 @@ def test_bad_flags_are_one_line(args, named, capsys, tmp_path: Path, monkeypatch
     assert status == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and named in lines[0], lines
+
+
+# --- the options defined once: GeneratorOptions, its flags and its keywords -------------------
+
+# Departures from the defaults, nested camera settings, shards and switches included.
+ROUND_TRIPS = {
+    "demo_everything_changed": lambda blend: GeneratorOptions(
+        out_dir="out dir", demo=True, demo_variant="diffuse", train_views=7, val_views=0, test_views=3,
+        camera=CameraSettings(lens_mm=35.5, sensor_width_mm=30.0, sensor_height_mm=20.25, sensor_fit="VERTICAL",
+                              shift_x=-0.05, shift_y=0.1, resolution_x=64, resolution_y=48,
+                              resolution_percentage=50, pixel_aspect_x=2.0, pixel_aspect_y=1.5),
+        samples=16, seed=12345, full_sphere=True, device="GPU", frame="fit", depth_normals="all",
+        allow_missing=True, color_management="scene", resume=True, shard=Shard(1, 4)),
+    "builtin_square_check": lambda blend: GeneratorOptions(
+        out_dir="", builtin="thin_structure", camera=CameraSettings(resolution_x=100, resolution_y=100),
+        check_only=True, frame="blender", overwrite=True, shard=Shard(0, 1)),
+    "blend_file_scene_camera": lambda blend: GeneratorOptions(
+        out_dir="o", blend_path=blend, use_scene_camera=True, depth_normals="none", seed=2**31 - 1),
+    "blender_open_file": lambda blend: GeneratorOptions(
+        out_dir="o", blend_path=blend, open_scene=True, train_views=24, val_views=2, test_views=3,
+        camera=CameraSettings(resolution_x=32, resolution_y=32), samples=8, resume=True),
+    "defaults": lambda blend: GeneratorOptions(out_dir="o", demo=True),
+}
+
+
+@pytest.mark.parametrize("case", sorted(ROUND_TRIPS))
+def test_options_to_argv_parses_back_into_the_same_options(case: str, tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "x.blend").write_bytes(b"BLENDER")
+    options = ROUND_TRIPS[case]("x.blend").validate()
+    argv = options_to_argv(options)
+    parser = build_parser()
+    # An open scene is the file Blender opened (blender -b FILE --python generate.py -- ARGV): no flag.
+    blender_file = options.blend_path if options.open_scene else ""
+    assert options_from_args(parser.parse_args(argv), parser, blender_file) == options, argv
+    if case == "defaults":
+        assert argv == ["--demo", "--out", "o"]
+    if case == "builtin_square_check":
+        assert "--resolution" in argv and "--width" not in argv
+    # The in-process keywords build the same options from the settings' own values.
+    keywords = {setting.keyword: setting.value(options) for setting in SETTINGS}
+    assert options_from_keywords(**keywords) == options
+
+
+def test_every_option_has_one_setting_and_switches_start_off() -> None:
+    fields = [field.name for field in dataclasses.fields(GeneratorOptions) if field.name != "camera"]
+    fields += [f"camera.{field.name}" for field in dataclasses.fields(CameraSettings)]
+    assert sorted(name for setting in SETTINGS for name in setting.targets) == sorted(fields)
+    flags = [setting.flag for setting in SETTINGS if setting.flag is not None]
+    assert len(flags) == len(set(flags))
+    assert all(setting.default is False for setting in SETTINGS if setting.kind is bool)
+    assert options_to_argv(DEFAULT_OPTIONS) == []
+
+
+def test_keywords_name_an_unknown_option_and_parse_text() -> None:
+    with pytest.raises(TypeError, match="'lense'.*did you mean 'lens'"):
+        generate_dataset("o", demo=True, lense=35.0)
+    options = options_from_keywords(out_dir="o", demo=True, shard="1/4", pixel_aspect="2:1", width=64, height=48)
+    assert options.shard == Shard(1, 4) and (options.camera.pixel_aspect_x, options.camera.pixel_aspect_y) == (2, 1)
+    assert (options.camera.resolution_x, options.camera.resolution_y) == (64, 48)
+    with pytest.raises(DatasetGenError, match="--shard"):
+        options_from_keywords(shard="4/4")
+    with pytest.raises(ValueError, match="use_scene_camera"):
+        options_to_argv(dataclasses.replace(options, use_scene_camera=True))

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from nerf_backend.encodings import PositionalEncoding
+from nerf_backend.field_components.encodings import PositionalEncoding
 
 
 def test_positional_encoding_values():

@@ -7,11 +7,12 @@ import math
 import pytest
 import torch
 
-from nerf_backend.config import PRESETS
-from nerf_backend.dataset import SceneBounds
-from nerf_backend.grid_encodings import VectorMatrixGrid
-from nerf_backend.models import GridModel, NerfModel
-from nerf_backend.occupancy import OccupancyGrid
+from nerf_backend.configs.presets import PRESETS
+from nerf_backend.core.scene_bounds import SceneBounds
+from nerf_backend.field_components.grid_encodings import VectorMatrixGrid
+from nerf_backend.models.marched import GridModel
+from nerf_backend.models.nerf import NerfModel
+from nerf_backend.model_components.occupancy import OccupancyGrid
 
 BOX = SceneBounds((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
@@ -150,7 +151,7 @@ def test_fast_and_paper_rendering_agree_on_an_analytic_field():
 
     fast = GridModel(PRESETS["fast"], BOX).eval()
     fast.field = _Ball()
-    from nerf_backend.cameras import ray_box_intersection
+    from nerf_backend.core.cameras import ray_box_intersection
     near, far, _ = ray_box_intersection(origins, directions, torch.tensor(BOX.box_min), torch.tensor(BOX.box_max))
     fast_rgb = fast(origins, directions, near, far)[-1].rgb
     # Both discretise the same integral; at these step sizes they agree with the closed form
@@ -199,7 +200,7 @@ def test_inference_render_matches_the_training_march():
     """Without gradients the model marches in segments, stops opaque rays and reads density
     from the dense volume; the image must equal the full march to the early-stop bound."""
     model = _solid_grid_model()
-    from nerf_backend.cameras import ray_box_intersection
+    from nerf_backend.core.cameras import ray_box_intersection
 
     torch.manual_seed(4)
     origins = torch.nn.functional.normalize(torch.randn(3000, 3), dim=-1) * 4.0

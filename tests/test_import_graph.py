@@ -9,7 +9,6 @@ import ast
 from pathlib import Path
 
 import pytest
-
 from conftest import REPO_ROOT
 
 
@@ -81,3 +80,70 @@ def test_packages_keep_to_their_side(package, forbidden):
     offending = {module: sorted(name for name in names if name.split(".")[0] in forbidden)
                  for module, names in _imports(REPO_ROOT / package).items()}
     assert {module: names for module, names in offending.items() if names} == {}
+
+
+# The backend's layers, lowest first: a module may import from its own package and from
+# packages of lower layers only (README, "How the code is laid out").
+BACKEND_LAYERS = (
+    ("core",),
+    ("data", "field_components", "model_components", "metrics"),
+    ("fields",),
+    ("models",),
+    ("configs",),
+    ("evaluation",),
+    ("training",),
+    ("bench",),
+    ("",),  # the modules at the top: cli, demo, __main__
+)
+LAYER_OF = {package: rank for rank, packages in enumerate(BACKEND_LAYERS) for package in packages}
+
+
+def _layer_package(name: str) -> str:
+    """The sub-package of ``nerf_backend`` a module is in ("" for the modules at the top)."""
+    parts = name.split(".")
+    return parts[1] if len(parts) > 1 and (REPO_ROOT / "nerf_backend" / parts[1]).is_dir() else ""
+
+
+def test_every_backend_module_belongs_to_a_layer():
+    graph = _imports(REPO_ROOT / "nerf_backend")
+    assert {_layer_package(module) for module in graph} <= set(LAYER_OF)
+
+
+def test_backend_modules_import_only_their_own_layer_package_or_lower_ones():
+    upward = []
+    for module, names in _imports(REPO_ROOT / "nerf_backend").items():
+        source = _layer_package(module)
+        for name in names:
+            if name.split(".")[0] != "nerf_backend" or name == "nerf_backend":
+                continue
+            target = _layer_package(name)
+            if target != source and LAYER_OF[target] >= LAYER_OF[source]:
+                upward.append(f"{module} imports {name}")
+    assert upward == []
+
+
+# Imports deferred on purpose (each says why where it is): optional or heavy libraries and
+# platform modules. Every other import is at the top of its module, where the graph shows it.
+DEFERRED_IMPORTS = {
+    "nerf_backend.__main__": {"torch"},  # checked first, for a one-line error without it
+    "nerf_backend.core.files": {"OpenEXR"},  # only depth files need it
+    "nerf_backend.core.plotting": {"matplotlib", "matplotlib.pyplot"},  # half a second; pictures only
+    "nerf_backend.bench.tables": {"matplotlib.lines", "matplotlib.patches"},
+    "nerf_backend.data.run_folder": {"fcntl", "msvcrt"},  # one per platform
+}
+
+
+def test_backend_imports_are_at_the_top_of_modules():
+    package = REPO_ROOT / "nerf_backend"
+    deferred = {}
+    for path in sorted(package.rglob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        top = {id(node) for node in tree.body}
+        names = set()
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.Import, ast.ImportFrom)) and id(node) not in top:
+                names.update(alias.name for alias in node.names) if isinstance(node, ast.Import) \
+                    else names.add(node.module or "")
+        if names:
+            deferred[_module_name(package, path)] = names
+    assert deferred == DEFERRED_IMPORTS

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from conftest import REPO_ROOT, run_python
-from nerf_backend.lpips_metric import _CONVS, LpipsUnavailable, default_linear_path, load_lpips, lpips_distance
+from nerf_backend.metrics.lpips_metric import _CONVS, LpipsUnavailable, default_linear_path, load_lpips, lpips_distance
 
 
 @pytest.fixture(scope="module")
@@ -96,8 +96,8 @@ def test_eval_reports_lpips_null_with_reason_or_a_real_number(trained_run, backb
                         "--lpips-weights", str(backbone_file))
     metrics = json.loads((trained_run / "metrics.json").read_text())
     assert metrics["lpips_unavailable"] is None and "LPIPS" in result.stdout
-    from nerf_backend.dataset import load_split
-    from nerf_backend.evaluate import read_rgb
+    from nerf_backend.data.dataset import load_split
+    from nerf_backend.evaluation.evaluate import read_rgb
 
     split = load_split(metrics["dataset"], "test")
     metric = load_lpips(backbone_file)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from nerf_backend.metrics import psnr, ssim
+from nerf_backend.metrics.image_metrics import psnr, ssim
 
 
 def _image_pair(seed, shape=(64, 48, 3)):

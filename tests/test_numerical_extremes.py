@@ -11,14 +11,15 @@ import math
 import pytest
 import torch
 
-from nerf_backend.cameras import Intrinsics, camera_rays, pixel_centres, ray_box_intersection
-from nerf_backend.config import PRESETS
-from nerf_backend.dataset import SceneBounds
-from nerf_backend.fields import FieldConfig, NerfField
-from nerf_backend.models import GridModel
-from nerf_backend.ray_rendering import SamplingConfig, render_rays
-from nerf_backend.samplers import sample_pdf, stratified_edges
-from nerf_backend.volume_rendering import composite_rgb, expected_depth, render_weights
+from nerf_backend.core.cameras import Intrinsics, camera_rays, pixel_centres, ray_box_intersection
+from nerf_backend.configs.presets import PRESETS
+from nerf_backend.core.scene_bounds import SceneBounds
+from nerf_backend.fields.mlp_field import FieldConfig, NerfField
+from nerf_backend.models.marched import GridModel
+from nerf_backend.model_components.samplers import SamplingConfig
+from nerf_backend.models.nerf import render_rays
+from nerf_backend.model_components.samplers import sample_pdf, stratified_edges
+from nerf_backend.model_components.volume_rendering import composite_rgb, expected_depth, render_weights
 
 SAMPLES = 64
 # float32 sums of S weights each within an ulp of its value: a sum may exceed 1 by S ulps.

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from nerf_backend.config import PRESETS
-from nerf_backend.dataset import SceneBounds
-from nerf_backend.errors import DatasetError
-from nerf_backend.models import GridModel
-from nerf_backend.occupancy_prior import OccupancyPrior, load_occupancy_prior
+from nerf_backend.configs.presets import PRESETS
+from nerf_backend.core.scene_bounds import SceneBounds
+from nerf_backend.core.errors import DatasetError
+from nerf_backend.models.marched import GridModel
+from nerf_backend.data.occupancy_prior import OccupancyPrior, load_occupancy_prior
 
 
 def _brute_force_allowed(prior: OccupancyPrior, box_min, box_max, cells) -> torch.Tensor:

@@ -2,11 +2,15 @@
 
 import json
 
+import pytest
 import torch
 
+from addon import sources
 from conftest import run_python
-from nerf_backend.config import PRESETS
-from nerf_backend.models import NerfModel
+from nerf_backend.configs.presets import PRESETS, load_presets
+from nerf_backend.configs.train_config import TrainConfig
+from nerf_backend.core.errors import NerfError
+from nerf_backend.models.nerf import NerfModel
 
 
 def test_paper_preset_is_the_papers_nerf():
@@ -49,3 +53,25 @@ def test_paper_preset_trains_on_a_real_dataset(tiny_demo_dataset, tmp_path):
     config = json.loads((run / "config.json").read_text())
     assert config["decisions"]["ray_bounds"] == {"kind": "protocol", "near": 2.0, "far": 6.0,
                                                  "reason": "the protocol's near 2, far 6 (as the reference loaders)"}
+
+
+def test_presets_are_listed_once_for_the_backend_and_the_add_on():
+    """The add-on's preset menu (read from presets.json without torch) is the backend's list."""
+    menu = sources.backend_presets()
+    assert [name for name, _, _ in menu] == list(PRESETS)
+    assert all(label and description for _, label, description in menu)
+    assert {config.preset for config in PRESETS.values()} == set(PRESETS)
+
+
+def test_a_preset_file_with_an_unknown_setting_is_named(tmp_path):
+    bad = tmp_path / "presets.json"
+    bad.write_text('{"x": {"label": "X", "description": "d", "settings": {"grid": {"resolutoin": 64}}}}')
+    with pytest.raises(NerfError, match=r"presets.json: x.grid: no setting 'resolutoin'"):
+        load_presets(bad)
+
+
+def test_a_run_recorded_before_the_hash_field_loads():
+    """config.json of runs from before the hash field has no "hash" group: its defaults."""
+    recorded = PRESETS["fast"].to_dict()
+    del recorded["hash"]
+    assert TrainConfig.from_dict(json.loads(json.dumps(recorded))) == PRESETS["fast"]

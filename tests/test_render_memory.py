@@ -11,10 +11,10 @@ from conftest import run_python
 
 RENDER_LARGE = textwrap.dedent("""
     import json, resource, sys, torch
-    from nerf_backend.dataset import load_split
-    from nerf_backend.inference import load_trained_model
-    from nerf_backend.render_views import render_image
-    from nerf_backend.run_folder import RunFolder
+    from nerf_backend.data.dataset import load_split
+    from nerf_backend.evaluation.inference import load_trained_model
+    from nerf_backend.evaluation.render_views import render_image
+    from nerf_backend.data.run_folder import RunFolder
     run, dataset, size = sys.argv[1], sys.argv[2], int(sys.argv[3])
     model, bounds, _ = load_trained_model(RunFolder(run), torch.device("cpu"))
     view = load_split(dataset, "test")

@@ -14,8 +14,8 @@ from PIL import Image
 
 from browser import chromium_binary, load_page
 from conftest import run_python
-from nerf_backend.evaluate import depth_error
-from nerf_backend.files import write_exr
+from nerf_backend.evaluation.evaluate import depth_error
+from nerf_backend.core.files import write_exr
 
 
 def test_depth_error_on_pixels_foreground_in_both(tmp_path):

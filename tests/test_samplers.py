@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from nerf_backend.samplers import merge_edges, sample_pdf, stratified_edges
+from nerf_backend.model_components.samplers import merge_edges, sample_pdf, stratified_edges
 
 
 def test_stratified_jitter_keeps_one_sample_per_stratum():

@@ -16,8 +16,8 @@ import pytest
 import torch
 
 from conftest import REPO_ROOT, TRAIN_ITERS, run_python
-from nerf_backend.dataset import load_split
-from nerf_backend.metrics import psnr
+from nerf_backend.data.dataset import load_split
+from nerf_backend.metrics.image_metrics import psnr
 
 # Measured: preview reached 27.1 dB mean test PSNR on the tiny demo dataset after 400
 # iterations (seed 0, conftest's trained_run), where a blank white image scores 15.4 dB.
@@ -80,9 +80,9 @@ def test_resume_continues_exactly_where_an_uninterrupted_run_would_be(tiny_demo_
     for name, value in a["model"].items():
         assert torch.allclose(value, b["model"][name], atol=2e-3), name
     # What matters to a user: the two models render the same image.
-    from nerf_backend.inference import load_trained_model
-    from nerf_backend.render_views import render_image
-    from nerf_backend.run_folder import RunFolder
+    from nerf_backend.evaluation.inference import load_trained_model
+    from nerf_backend.evaluation.render_views import render_image
+    from nerf_backend.data.run_folder import RunFolder
 
     view = load_split(tiny_demo_dataset, "val")
     images = []

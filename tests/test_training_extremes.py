@@ -25,13 +25,13 @@ from PIL import Image
 
 from conftest import REPO_ROOT, run_python
 from datasets_gen.trajectories import hemisphere_poses, look_at, split_rng
-from nerf_backend.config import PRESETS
-from nerf_backend.dataset import load_split
-from nerf_backend.errors import NerfError
-from nerf_backend.evaluate import evaluate_run
-from nerf_backend.inference import render_cameras
-from nerf_backend.run_folder import RunFolder
-from nerf_backend.trainer import TrainOptions, train
+from nerf_backend.configs.presets import PRESETS
+from nerf_backend.data.dataset import load_split
+from nerf_backend.core.errors import NerfError
+from nerf_backend.evaluation.evaluate import evaluate_run
+from nerf_backend.evaluation.inference import render_cameras
+from nerf_backend.data.run_folder import RunFolder
+from nerf_backend.training.trainer import TrainOptions, train
 
 CPU = torch.device("cpu")
 FAST_ITERS = 300

@@ -5,8 +5,8 @@ import math
 import pytest
 import torch
 
-from nerf_backend.samplers import interval_midpoints, stratified_edges
-from nerf_backend.volume_rendering import composite_rgb, expected_depth, render_weights
+from nerf_backend.model_components.samplers import interval_midpoints, stratified_edges
+from nerf_backend.model_components.volume_rendering import composite_rgb, expected_depth, render_weights
 
 
 def _uniform_ray(near=2.0, far=6.0, samples=256):

@@ -16,7 +16,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 BUNDLED_PACKAGES = ("datasets_gen", "nerf_backend")
-BACKEND_DATA = ("nerf_backend/requirements.txt",)
+BACKEND_DATA = ("nerf_backend/requirements.txt", "nerf_backend/configs/presets.json")
 
 
 def extension_files() -> list[tuple[Path, str]]:

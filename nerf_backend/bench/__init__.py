@@ -14,7 +14,10 @@ A variant is a preset with changes: ``NAME=PRESET+KEY=VALUE+...`` (``--set`` syn
 
 One idea a module: ``variants`` (variants and the paper's ablations), ``curves`` (curve points,
 time to a PSNR), ``runner`` (one dataset: ``run_bench``), ``suite`` (many datasets:
-``run_suite``), ``tables`` (markdown tables and plots), ``step_cost`` (``bench-step``).
+``run_suite``), ``tables`` (markdown tables and plots), ``step_cost`` (``bench-step``),
+``plain_nerf`` (the plain NeRF step ``bench-step`` measures against).
+
+Layer 7: above training and evaluation, which it drives.
 """
 
 from .curves import THRESHOLDS_DB, curve_points, time_to_reach

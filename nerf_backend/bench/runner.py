@@ -16,40 +16,40 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..errors import NerfError
-from ..files import write_json
+from ..core.devices import resolve_device
+from ..core.errors import NerfError
+from ..core.files import write_json
+from ..data.dataset import load_split
+from ..data.run_folder import RunFolder
+from ..evaluation.inference import load_trained_model
+from ..evaluation.render_views import render_image
+from ..metrics.registry import MetricTools, mean_scores, score_image
+from ..training.trainer import TrainOptions, train
 from .curves import THRESHOLDS_DB, curve_points, time_to_reach
 from .tables import markdown_table, plot_curves
 from .variants import Variant, ablation_order
 
+# The bench scores without LPIPS: its weights are optional, and a bench must run anywhere.
+BENCH_TOOLS = MetricTools(lpips_unavailable="the bench does not load LPIPS weights")
 
-def _score(run_dir: Path, split, indices: list[int], device: torch.device) -> tuple[float, float, float]:
-    """Mean PSNR, SSIM and render seconds per image over ``indices`` of ``split``."""
-    from ..inference import load_trained_model
-    from ..metrics import psnr, ssim
-    from ..render_views import render_image
-    from ..run_folder import RunFolder
 
+def _score(run_dir: Path, split, indices: list[int], device: torch.device) -> tuple[dict, float]:
+    """Each metric's mean over ``indices`` of ``split`` (the same scoring as ``eval``, on the
+    image as it would be written to PNG) and the render seconds per image."""
     model, ray_bounds, _ = load_trained_model(RunFolder(run_dir), device)
-    psnrs, ssims, seconds = [], [], []
+    per_view, seconds = [], []
     for index in indices:
         start = time.perf_counter()
         image = render_image(model, split.intrinsics, split.poses[index], ray_bounds)
         seconds.append(time.perf_counter() - start)
         rendered = np.round(image.rgb * 255) / 255  # as written to PNG
-        reference = split.rgb_on_white(index).numpy()
-        psnrs.append(psnr(rendered, reference))
-        ssims.append(ssim(rendered, reference))
-    return float(np.mean(psnrs)), float(np.mean(ssims)), float(np.mean(seconds))
+        per_view.append(score_image(rendered, split.rgb_on_white(index).numpy(), BENCH_TOOLS))
+    return mean_scores(per_view), float(np.mean(seconds))
 
 
 def bench_variant(dataset: str, variant: Variant, out_dir: str, budget_seconds: float | None,
                   iterations: int | None, points: int, curve_views: int, seed: int, device_name: str) -> dict:
     """Train and measure one variant (runs in a child process)."""
-    from ..dataset import load_split
-    from ..devices import resolve_device
-    from ..trainer import TrainOptions, train
-
     device = resolve_device(device_name)
     test = load_split(dataset, "test")
     curve_indices = sorted({round(i) for i in np.linspace(0, len(test) - 1, min(curve_views, len(test)))})
@@ -64,15 +64,11 @@ def bench_variant(dataset: str, variant: Variant, out_dir: str, budget_seconds: 
             iterations=int(target) if iterations is not None else (10**9 if k == 0 else None),
             resume=k > 0, overwrite=k == 0, progress=False,
         ))
-        value, similarity, _ = _score(run_dir, test, curve_indices, device)
-        curve.append({"train_seconds": summary.train_seconds, "iteration": summary.iteration,
-                      "psnr": value, "ssim": similarity})
+        scores, _ = _score(run_dir, test, curve_indices, device)
+        curve.append({"train_seconds": summary.train_seconds, "iteration": summary.iteration, **scores})
         print(f"bench {variant.name}: {summary.iteration} it, {summary.train_seconds:.1f} s, "
-              f"PSNR {value:.2f} dB on {len(curve_indices)} test views", file=sys.stderr, flush=True)
-    final_psnr, final_ssim, render_seconds = _score(run_dir, test, list(range(len(test))), device)
-    from ..inference import load_trained_model
-    from ..run_folder import RunFolder
-
+              f"PSNR {scores['psnr']:.2f} dB on {len(curve_indices)} test views", file=sys.stderr, flush=True)
+    final_scores, render_seconds = _score(run_dir, test, list(range(len(test))), device)
     model, _, _ = load_trained_model(RunFolder(run_dir), device)
     buffer = io.BytesIO()
     torch.save(model.state_dict(), buffer)
@@ -80,7 +76,7 @@ def bench_variant(dataset: str, variant: Variant, out_dir: str, budget_seconds: 
         "name": variant.name, "preset": variant.preset, "overrides": list(variant.overrides),
         "curve": curve,
         "time_to_psnr_s": {f"{t:g}": time_to_reach(curve, t) for t in THRESHOLDS_DB},
-        "final": {"psnr": final_psnr, "ssim": final_ssim, "test_views": len(test),
+        "final": {**final_scores, "test_views": len(test),
                   "iterations": summary.iteration, "train_seconds": summary.train_seconds},
         "render_seconds_per_image": render_seconds,
         "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,

@@ -9,8 +9,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..errors import NerfError
-from ..files import write_json
+from ..configs.presets import preset_config
+from ..core.errors import NerfError
+from ..core.files import write_json
+from ..data.dataset import composite, load_split
+from ..models.registry import build_model
+from ..training.trainer import TrainOptions, train
+from .plain_nerf import PlainNerf, plain_rays
 
 
 def step_cost(dataset: Path, preset: str, steps: int, out_dir: Path, seed: int = 0, rays: int | None = None,
@@ -18,12 +23,6 @@ def step_cost(dataset: Path, preset: str, steps: int, out_dir: Path, seed: int =
     """Seconds per training iteration of a NeRF preset through this project's trainer,
     against ``plain_nerf.PlainNerf`` (the same maths written plainly) on the same data,
     rays per batch, threads and seed. Each side takes one untimed warm-up step."""
-    from ..config import preset_config
-    from ..dataset import composite, load_split
-    from ..models import build_model
-    from ..plain_nerf import PlainNerf, plain_rays
-    from ..trainer import TrainOptions, train
-
     config = preset_config(preset)
     if config.model != "nerf" or not config.field.view_dependent:
         raise NerfError(f"bench-step: {preset!r} is not a view-dependent NeRF preset; the plain yardstick is a NeRF MLP")

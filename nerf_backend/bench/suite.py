@@ -35,8 +35,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..errors import NerfError
-from ..files import write_json
+from ..core.errors import NerfError
+from ..core.files import write_json
+from ..data.dataset import load_split
+from ..data.run_folder import RunFolder
+from ..training.collapse_guard import blank_psnr
 from .runner import run_bench
 from .tables import plot_suite, suite_markdown
 from .variants import Variant
@@ -84,9 +87,6 @@ def find_datasets(paths: list[Path]) -> tuple[list[SuiteDataset], list[Path]]:
 def scene_blank_psnr(dataset: Path) -> dict:
     """The blank white image's mean PSNR over the test views (composited on white), with the
     number of views it is averaged over and of views left out for having nothing in them."""
-    from ..collapse_guard import blank_psnr
-    from ..dataset import load_split
-
     test = load_split(dataset, "test")
     values = [blank_psnr(test.rgb_on_white(index).numpy()) for index in range(len(test))]
     finite = [value for value in values if math.isfinite(value)]
@@ -96,8 +96,6 @@ def scene_blank_psnr(dataset: Path) -> dict:
 
 def collapse_events(run_dir: Path) -> list[dict]:
     """The trainer's ``collapse`` events in a run's ``events.jsonl`` (all segments of a bench)."""
-    from ..run_folder import RunFolder
-
     keys = ("iteration", "val_psnr", "blank_psnr", "margin_db", "action", "reason")
     return [{key: event.get(key) for key in keys} for event in RunFolder(run_dir).read_events()
             if event.get("event") == "collapse"]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from ..core.plotting import pyplot
 from .curves import THRESHOLDS_DB
 
 
@@ -36,10 +37,7 @@ def markdown_table(report: dict) -> str:
 
 
 def plot_curves(report: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     figure, axis = plt.subplots(figsize=(7, 4.5), dpi=120)
     for v in report["variants"]:
@@ -92,11 +90,10 @@ def suite_markdown(summary: dict) -> str:
 def plot_suite(summary: dict, path: Path) -> None:
     """Final test PSNR per scene and variant (bars), the blank image's PSNR per scene (a black
     line across its bars); a collapsed variant's bar is hatched."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.lines import Line2D
+    plt = pyplot()
+    from matplotlib.lines import (
+        Line2D,  # matplotlib is deferred on purpose (core/plotting.py)
+    )
     from matplotlib.patches import Patch
 
     scenes = summary["scenes"]

@@ -72,8 +72,8 @@ settings.dataset_dir = str(WORK / "dataset")
 settings.run_dir = str(WORK / "run")
 settings.train_views, settings.val_views, settings.test_views = 24, 2, 3
 settings.resolution, settings.samples = 32, 8
-operators = sys.modules[f"{module}.operators"]
-report["scene_warnings"] = operators.scene_warnings(bpy.context)
+job_timer, paths = sys.modules[f"{module}.job_timer"], sys.modules[f"{module}.paths"]
+report["scene_warnings"] = sys.modules[f"{module}.dataset_ops"].scene_warnings(bpy.context)
 start = time.time()
 report["generate"] = {"result": sorted(bpy.ops.nerf.generate_dataset("EXEC_DEFAULT")), "seconds": time.time() - start,
                       "files": sorted(p.name for p in (WORK / "dataset").iterdir())}
@@ -86,19 +86,19 @@ report["train"] = {"result": sorted(bpy.ops.nerf.train()), "returned_after_s": t
 deadline = time.time() + 600
 # The timer the operator registered does not fire in the background module: call it as Blender
 # would, until it unregisters itself (returns None).
-report["train"]["timer_registered"] = bpy.app.timers.is_registered(operators._tick)
+report["train"]["timer_registered"] = bpy.app.timers.is_registered(job_timer._tick)
 while time.time() < deadline:
-    again = operators._tick()
-    state = operators.status[str(operators.run_dir(bpy.context))]
+    again = job_timer._tick()
+    state = job_timer.status[str(paths.run_dir(bpy.context))]
     report["train"]["states"].append([state.state, round(state.fraction, 3), state.detail])
     if again is None:
         break
     time.sleep(again)
 report["train"]["final"] = {"state": state.state, "detail": state.detail, "error": state.error,
-                            "preview_image": operators.PREVIEW_IMAGE in bpy.data.images,
+                            "preview_image": sys.modules[f"{module}.images"].PREVIEW_IMAGE in bpy.data.images,
                             "cpu_threads": [e.get("cpu_threads") for e in sys.modules[f"{module}.jobs"].read_events(
-                                operators.run_dir(bpy.context)) if e.get("event") == "start"],
-                            "cpu_threads_asked": operators.training_cpu_threads()}
+                                paths.run_dir(bpy.context)) if e.get("event") == "start"],
+                            "cpu_threads_asked": sys.modules[f"{module}.training_ops"].training_cpu_threads()}
 save()
 
 # 4. results: test views as images, and the active camera against Cycles
@@ -131,8 +131,10 @@ def scene_settings() -> tuple:
 
 
 settings_before_compare = scene_settings()
-report["compare"] = {"result": sorted(bpy.ops.nerf.compare()), "psnr": settings.compare_psnr,
-                     "ssim": settings.compare_ssim, "lpips": settings.compare_lpips,
+compare_result = sorted(bpy.ops.nerf.compare())
+rows = {row["key"]: row for row in json.loads(settings.compare_metrics)}
+report["compare"] = {"result": compare_result, "psnr": rows["psnr"]["value"],
+                     "ssim": rows["ssim"]["value"], "lpips": rows["lpips"]["text"],
                      "images": {name: list(bpy.data.images[name].size) for name in
                                 ("Cycles active camera", "NeRF active camera", "NeRF difference", "NeRF comparison")
                                 if name in bpy.data.images}}
@@ -156,14 +158,14 @@ report["open_report"] = {"result": sorted(bpy.ops.nerf.open_report()),
 # Train more, then Cancel from the panel: the backend saves and stops.
 settings.budget_iterations = 100_000
 report["cancel"] = {"resume": sorted(bpy.ops.nerf.train(resume=True))}
-while operators.status[str(operators.run_dir(bpy.context))].state != "running" or \
-        (operators.status[str(operators.run_dir(bpy.context))].iteration or 0) < 320:
-    operators._tick()
+while job_timer.status[str(paths.run_dir(bpy.context))].state != "running" or \
+        (job_timer.status[str(paths.run_dir(bpy.context))].iteration or 0) < 320:
+    job_timer._tick()
     time.sleep(0.5)
 report["cancel"]["result"] = sorted(bpy.ops.nerf.cancel_training())
-while operators._tick() is not None:
+while job_timer._tick() is not None:
     time.sleep(0.5)
-state = operators.status[str(operators.run_dir(bpy.context))]
+state = job_timer.status[str(paths.run_dir(bpy.context))]
 report["cancel"]["final"] = [state.state, state.iteration]
 save()
 

@@ -48,8 +48,8 @@ def log(message: str) -> None:
     save()
 
 
-def operators():
-    return sys.modules[MODULE + ".operators"]
+def job_timer():
+    return sys.modules[MODULE + ".job_timer"]
 
 
 def panel_classes() -> list:
@@ -252,7 +252,7 @@ def key(type_: str):
 
 
 def job(folder: str):
-    return operators().status.get(str(Path(folder).resolve()))
+    return job_timer().status.get(str(Path(folder).resolve()))
 
 
 def wait(predicate, timeout: float, what: str):
@@ -361,7 +361,7 @@ def flow():
     yield from press("nerf.train", "Resume")
     yield from wait(lambda: state_of(settings.run_dir) == "done", 600, "the resumed training to finish")
     report["done"] = {"iteration": job(settings.run_dir).iteration, "detail": job(settings.run_dir).detail,
-                      "preview": operators().PREVIEW_IMAGE in bpy.data.images}
+                      "preview": sys.modules[MODULE + ".images"].PREVIEW_IMAGE in bpy.data.images}
     yield from shot("08_trained")
 
     # Results where the user looks: an Image Editor.
@@ -373,8 +373,9 @@ def flow():
     yield from shot("09_results")
     yield from close_extra_windows()
     yield from press("nerf.compare", None)
-    yield from wait(lambda: bool(settings.compare_lpips), 300, "the comparison")
-    report["compare"] = {"psnr": settings.compare_psnr, "ssim": settings.compare_ssim, "lpips": settings.compare_lpips,
+    yield from wait(lambda: bool(settings.compare_metrics), 300, "the comparison")
+    rows = {row["key"]: row for row in json.loads(settings.compare_metrics)}
+    report["compare"] = {"psnr": rows["psnr"]["value"], "ssim": rows["ssim"]["value"], "lpips": rows["lpips"]["text"],
                          "windows": len(bpy.context.window_manager.windows), "editor_image": _editor_image()}
     yield 1.0
     yield from shot("10_compared")
@@ -412,8 +413,8 @@ def main() -> None:
         except Exception:  # noqa: BLE001 - every failure goes to the report, then Blender quits
             report["error"] = traceback.format_exc()
             print(report["error"], flush=True)
-            report["status_at_error"] = {folder: repr(status) for folder, status in operators().status.items()}
-            for job in operators()._jobs.values():  # a backend left running would slow every later test
+            report["status_at_error"] = {folder: repr(status) for folder, status in job_timer().status.items()}
+            for job in job_timer()._jobs.values():  # a backend left running would slow every later test
                 if job.is_running():
                     job.kill()
             try:

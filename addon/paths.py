@@ -1,0 +1,39 @@
+"""Where things are: the scene's NeRF settings, its dataset and run folders, and the backend's
+Python (chosen in the preferences, or the one Set Up Backend made)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import bpy
+
+from .jobs import python_in_venv
+
+
+def settings(context):
+    return context.scene.nerf
+
+
+def dataset_dir(context) -> Path:
+    return Path(bpy.path.abspath(settings(context).dataset_dir)).resolve()
+
+
+def run_dir(context) -> Path:
+    return Path(bpy.path.abspath(settings(context).run_dir)).resolve()
+
+
+def managed_venv() -> Path:
+    """Where Set Up Backend puts the backend's virtual environment (the extension's user folder)."""
+    try:
+        return Path(bpy.utils.extension_path_user(__package__, path="backend-venv", create=True))
+    except (ValueError, AttributeError):  # not installed as an extension (a checkout)
+        return Path(bpy.utils.user_resource("SCRIPTS", path="nerf_from_blender_backend", create=True))
+
+
+def backend_python(context) -> str:
+    addon = context.preferences.addons.get(__package__)
+    chosen = addon.preferences.python_path if addon is not None else ""
+    if chosen:
+        return bpy.path.abspath(chosen)
+    managed = python_in_venv(managed_venv())
+    return str(managed) if managed.is_file() else ""

@@ -1,0 +1,130 @@
+"""Everything that decides how a run trains, in one frozen dataclass; a run's ``config.json``
+records it with every value, so a run can be reproduced. The presets are in presets.json."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+
+from ..core.errors import NerfError
+from ..fields.grid_field import GridFieldConfig
+from ..fields.hash_field import HashFieldConfig
+from ..fields.mlp_field import FieldConfig
+from ..model_components.samplers import SamplingConfig
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that decides how a run trains."""
+
+    preset: str
+    # A name in models.registry.MODELS: "nerf" (the paper's MLP fields, coarse-to-fine),
+    # "grid" (factorised grids marched with an occupancy grid), "hash" (Instant-NGP's hash grid, marched).
+    model: str = "nerf"
+    field: FieldConfig = dataclasses.field(default_factory=FieldConfig)  # the "nerf" model's MLPs
+    sampling: SamplingConfig = dataclasses.field(default_factory=SamplingConfig)  # the "nerf" model's samples
+    grid: GridFieldConfig = dataclasses.field(default_factory=GridFieldConfig)  # the "grid" model's field
+    hash: HashFieldConfig = dataclasses.field(default_factory=HashFieldConfig)  # the "hash" model's field
+    grid_step_ratio: float = 0.5  # marched models: step as a fraction of an occupancy cell
+    occupancy_warmup: int = 16  # steps before empty space is skipped at all
+    occupancy_every: int = 16
+    occupancy_alpha_threshold: float = 1e-4  # cells that cannot reach this alpha in one step are empty
+    # Grid models: start the occupancy grid from the dataset's occupancy prior (Blender's
+    # geometry, occupancy_prior.npz) and never mark a cell it leaves out: "surface" (cells
+    # the surfaces pass through, with a margin), "solid" (those and what they enclose) or "none".
+    occupancy_prior: str = "none"
+    # "protocol": near 2, far 6 for every ray (the reference loaders). "scene": each ray's
+    # entry and exit of the scene's bounding box from scene_profile.json (falls back to
+    # "protocol" for datasets without one).
+    ray_bounds: str = "protocol"
+    rays_per_batch: int = 1024
+    # Train on only the first N training views (the paper's 25/50/100-view ablation).
+    max_train_views: int | None = None
+    iterations: int = 200_000
+    learning_rate: float = 5e-4
+    # Learning rate of the MLPs when the model also has grids (which use learning_rate).
+    network_learning_rate: float = 5e-4
+    adam_betas: tuple[float, float] = (0.9, 0.999)
+    # lr(step) = learning_rate · (final_learning_rate / learning_rate)^(step / lr_decay_steps)
+    final_learning_rate: float = 5e-5
+    lr_decay_steps: int = 500_000
+    adam_eps: float = 1e-7
+    # The decay never takes the learning rate below this fraction of its start: runs longer
+    # than their schedule keep learning instead of freezing at a vanishing rate.
+    learning_rate_floor: float = 0.01
+    # "float32", or "bfloat16" / "float16": autocast runs the fields' products in that type
+    # (volume rendering and the loss stay float32; float16 also scales the loss).
+    precision: str = "float32"
+    # Train on the centre of each image first: with a white background the all-white
+    # image is a local minimum a NeRF falls into when most early rays miss the object.
+    precrop_iterations: int = 500
+    precrop_fraction: float = 0.5
+    # Composite each training ray's ground truth and render over a random colour instead of
+    # white: the alpha then decides, and "all background" stops being a minimum.
+    random_background: bool = False
+    validate_every: int = 2500
+    # The collapse guard (collapse_guard.py): from this many steps on, a validation within
+    # collapse_margin_db of the blank white image's PSNR on the same views is a collapse.
+    collapse_check_after: int = 250
+    collapse_margin_db: float = 1.0
+    checkpoint_every: int = 1000
+    log_every: int = 10
+
+    def learning_rate_decay(self, step: int) -> float:
+        """The factor every learning rate is multiplied by at ``step`` (1 at the start)."""
+        if self.learning_rate <= 0:  # a frozen model (learning_rate 0) has nothing to decay
+            return 1.0
+        ratio = self.final_learning_rate / self.learning_rate
+        return max(ratio ** (step / self.lr_decay_steps), self.learning_rate_floor)
+
+    def learning_rate_at(self, step: int) -> float:
+        return self.learning_rate * self.learning_rate_decay(step)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "TrainConfig":
+        values = dict(data)
+        # Runs before colour was skipped by transmittance (GridModel.OPAQUE_TRANSMITTANCE)
+        # stored a weight threshold; it no longer decides anything.
+        values.pop("colour_weight_threshold", None)
+        values["field"] = FieldConfig(**{**values["field"], "skips": tuple(values["field"]["skips"])})
+        values["sampling"] = SamplingConfig(**values["sampling"])
+        values["grid"] = GridFieldConfig(**{**values["grid"],
+                                            "upsample_iterations": tuple(values["grid"]["upsample_iterations"])})
+        values["adam_betas"] = tuple(values["adam_betas"])
+        # Runs from before the hash field have no "hash" group: its defaults.
+        values["hash"] = HashFieldConfig(**values.get("hash", {}))
+        return cls(**values)
+
+
+def with_overrides(config: TrainConfig, assignments: list[str]) -> TrainConfig:
+    """``config`` with ``KEY=VALUE`` assignments applied; KEY may be dotted into the nested
+    configs (``grid.resolution=96``, ``field.view_dependent=false``). Values are parsed as
+    JSON where they can be (numbers, booleans, lists), else taken as strings."""
+    data = config.to_dict()
+    for assignment in assignments:
+        key, sep, text = assignment.partition("=")
+        if not sep:
+            raise NerfError(f"--set {assignment!r}: expected KEY=VALUE")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            value = text
+        *parents, leaf = key.split(".")
+        target = data
+        for part in parents:
+            if not isinstance(target.get(part), dict):
+                raise NerfError(f"--set {key}: {part!r} is not a group of settings")
+            target = target[part]
+        if leaf not in target:
+            raise NerfError(f"--set {key}: no such setting; known here: {', '.join(sorted(target))}")
+        if isinstance(target[leaf], (int, float)) and not isinstance(target[leaf], bool) and not isinstance(value, (int, float)):
+            raise NerfError(f"--set {key}: expected a number, got {text!r}")
+        target[leaf] = value
+    try:
+        return TrainConfig.from_dict(data)
+    except TypeError as exc:
+        raise NerfError(f"--set: {exc}") from None

@@ -1,0 +1,2 @@
+"""Layer 0: what everything shares and nothing here imports from the rest: errors, files, devices, progress
+bars, cameras (rays through pixel centres), the scene's box (``SceneBounds``) and plotting."""

@@ -1,0 +1,111 @@
+"""Where the scene can be, from Blender's own geometry: the dataset's occupancy prior.
+
+``datasets_gen`` voxelises the renderable geometry (after modifiers, in the NeRF frame, with
+margins for hair and displacement) into ``occupancy_prior.npz``, named in
+``scene_profile.json``. Its cells are marked conservatively: every cell a renderable
+surface passes through, grown by a margin (``surface``), and optionally everything those
+cells enclose (``solid``). Outside its box nothing renders.
+
+A model's occupancy grid has other cells; ``allowed_cells`` marks each of them that
+overlaps any marked prior cell, so nothing the prior holds is ever skipped.
+
+Example:
+    >>> import torch
+    >>> prior = OccupancyPrior(torch.zeros(4, 4, 4, dtype=torch.bool), (0.0, 0.0, 0.0), 0.25, "surface")
+    >>> prior.occupied[0, 1, 3] = True  # the cell [0, 0.25] × [0.25, 0.5] × [0.75, 1]
+    >>> prior.allowed_cells((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2)).nonzero().tolist()
+    [[0, 0, 1], [0, 1, 1]]
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..core.errors import DatasetError
+
+PRIOR_KINDS = ("surface", "solid")
+# A model cell whose edge lies within this fraction of a prior cell of a marked prior cell
+# counts as overlapping it: float rounding never turns "touching" into "apart".
+_TOUCH = 1e-6
+
+
+@dataclass
+class OccupancyPrior:
+    """Marked cells ``occupied [nx, ny, nz]`` (cubes of side ``cell_size`` from ``box_min``)."""
+
+    occupied: Tensor
+    box_min: tuple[float, float, float]
+    cell_size: float
+    kind: str  # "surface" or "solid"
+
+    @property
+    def box_max(self) -> tuple[float, float, float]:
+        return tuple(lo + n * self.cell_size for lo, n in zip(self.box_min, self.occupied.shape))  # type: ignore[return-value]
+
+    @property
+    def occupied_fraction(self) -> float:
+        return float(self.occupied.float().mean())
+
+    def allowed_cells(self, box_min: tuple[float, ...], box_max: tuple[float, ...], cells: tuple[int, int, int]) -> Tensor:
+        """``[Gx, Gy, Gz]`` bool: the cells of a grid over ``[box_min, box_max]`` that overlap
+        or touch a marked prior cell (closed cells: geometry on a shared face belongs to
+        both). Cells outside the prior's box hold nothing."""
+        # A summed-volume table answers "any marked cell in this index box" in O(1) a cell.
+        table = torch.zeros(tuple(n + 1 for n in self.occupied.shape), dtype=torch.int64)
+        table[1:, 1:, 1:] = self.occupied.long().cumsum(0).cumsum(1).cumsum(2)
+        ranges = []
+        for axis in range(3):
+            edges = torch.linspace(box_min[axis], box_max[axis], cells[axis] + 1, dtype=torch.float64)
+            u = (edges - self.box_min[axis]) / self.cell_size  # model cell edges in prior cells
+            n = self.occupied.shape[axis]
+            start = torch.floor(u[:-1] - _TOUCH).clamp(0, n).long()
+            stop = torch.ceil(u[1:] + _TOUCH).clamp(0, n).long()
+            ranges.append((start, stop))
+        (x0, x1), (y0, y1), (z0, z1) = ranges
+        X0, Y0, Z0 = torch.meshgrid(x0, y0, z0, indexing="ij")
+        X1, Y1, Z1 = torch.meshgrid(x1, y1, z1, indexing="ij")
+        count = (table[X1, Y1, Z1] - table[X0, Y1, Z1] - table[X1, Y0, Z1] - table[X1, Y1, Z0]
+                 + table[X0, Y0, Z1] + table[X0, Y1, Z0] + table[X1, Y0, Z0] - table[X0, Y0, Z0])
+        return count > 0
+
+
+def load_occupancy_prior(dataset_dir: Path | str, kind: str) -> OccupancyPrior | None:
+    """The dataset's prior of ``kind`` ("surface" or "solid"), or None when the dataset has
+    none (datasets from other tools, or a Blender without numpy)."""
+    if kind not in PRIOR_KINDS:
+        raise ValueError(f"unknown occupancy prior {kind!r}; choose one of {', '.join(PRIOR_KINDS)}")
+    profile_path = Path(dataset_dir) / "scene_profile.json"
+    if not profile_path.is_file():
+        return None
+    try:
+        record = json.loads(profile_path.read_text()).get("occupancy_prior")
+    except (json.JSONDecodeError, AttributeError, UnicodeDecodeError):
+        return None  # the profile's own loader reports a broken profile
+    if not isinstance(record, dict):
+        return None
+    name = record.get("file")
+    if not isinstance(name, str) or Path(name).name != name:
+        raise DatasetError(f"{profile_path}: 'occupancy_prior' 'file' must be a file name in the dataset folder, got {name!r}")
+    path = Path(dataset_dir) / name
+    if not path.is_file():
+        raise DatasetError(f"{path}: occupancy prior not found (named in {profile_path.name})")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            occupied = np.asarray(data[kind])
+            box_min = np.asarray(data["box_min"], dtype=np.float64)
+            cell_size = float(np.asarray(data["cell_size"]))
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as exc:
+        raise DatasetError(f"{path}: not a readable occupancy prior ({exc})") from None
+    if occupied.dtype != np.bool_ or occupied.ndim != 3 or min(occupied.shape) < 1:
+        raise DatasetError(f"{path}: '{kind}' must be a 3-D bool array, got {occupied.dtype} {occupied.shape}")
+    if box_min.shape != (3,) or not np.isfinite(box_min).all() or not (math.isfinite(cell_size) and cell_size > 0):
+        raise DatasetError(f"{path}: 'box_min' must be 3 finite numbers and 'cell_size' a positive number")
+    return OccupancyPrior(torch.from_numpy(occupied.copy()), tuple(box_min.tolist()), cell_size, kind)  # type: ignore[arg-type]

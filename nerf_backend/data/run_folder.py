@@ -1,0 +1,169 @@
+"""A run folder: its config, its event log, its checkpoint and the lock that keeps two
+trainings out of the same folder.
+
+Layout::
+
+    RUN/config.json        dataset, seed, device, the full TrainConfig, decisions made
+    RUN/events.jsonl       one JSON object a line (start, train, val, checkpoint, done, error)
+    RUN/checkpoint.pt      the latest checkpoint, replaced atomically
+    RUN/preview.png        the latest validation render
+    RUN/renders/SPLIT/     rendered views; RUN/metrics.json from ``eval``
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import pickle
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..core.errors import RunError
+from ..core.files import atomic_write, remove_stale_temporaries, write_json
+
+
+def _first_line(error: Exception) -> str:
+    return (str(error).strip().splitlines() or [type(error).__name__])[0]
+
+
+CONFIG_NAME = "config.json"
+EVENTS_NAME = "events.jsonl"
+CHECKPOINT_NAME = "checkpoint.pt"
+LOCK_NAME = ".lock"
+IN_USE = "another training is already using this run folder"
+
+
+class RunFolder:
+    def __init__(self, path: Path | str) -> None:
+        self.path = Path(path)
+        self._lock_handle = None
+
+    @property
+    def config_path(self) -> Path:
+        return self.path / CONFIG_NAME
+
+    @property
+    def events_path(self) -> Path:
+        return self.path / EVENTS_NAME
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.path / CHECKPOINT_NAME
+
+    def renders_dir(self, split: str) -> Path:
+        return self.path / "renders" / split
+
+    def read_config(self) -> dict:
+        if not self.config_path.is_file():
+            raise RunError(f"{self.path}: not a run folder (no {CONFIG_NAME}); train one first")
+        try:
+            return json.loads(self.config_path.read_text())
+        except json.JSONDecodeError as exc:
+            raise RunError(f"{self.config_path}: not valid JSON ({exc})") from None
+
+    def write_config(self, config: dict) -> None:
+        write_json(self.config_path, config)
+
+    def log_event(self, event: str, **fields: Any) -> None:
+        """Append one event line; flushed at once so a reader (the add-on) sees it live."""
+        record = {"event": event, "time": time.time(), **fields}
+        try:
+            with open(self.events_path, "a", encoding="utf-8") as handle:
+                handle.write(json.dumps(record) + "\n")
+                handle.flush()
+        except OSError as exc:
+            raise RunError(f"{self.events_path}: cannot write ({exc.strerror or exc})") from exc
+
+    def read_events(self) -> list[dict]:
+        if not self.events_path.exists():
+            return []
+        events = []
+        for line in self.events_path.read_text(encoding="utf-8").splitlines():
+            try:
+                events.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue  # a line cut by a kill mid-write: the rest of the log stands
+        return events
+
+    def save_checkpoint(self, state: dict) -> None:
+        # Serialised in memory first so that a write failure (a full disk) is the OS's
+        # error, not one of torch's; either way the previous checkpoint stays.
+        buffer = io.BytesIO()
+        torch.save(state, buffer)
+        atomic_write(self.checkpoint_path, lambda tmp: tmp.write_bytes(buffer.getbuffer()))
+
+    def load_checkpoint(self, device: torch.device) -> dict:
+        """The checkpoint's data: tensors, numbers, strings, lists and dicts only
+        (``weights_only=True``), so that opening a run folder someone else made cannot run
+        code. A file holding anything else is refused with a one-line error."""
+        if not self.checkpoint_path.is_file():
+            raise RunError(f"{self.checkpoint_path}: no checkpoint to load")
+        try:
+            return torch.load(self.checkpoint_path, map_location=device, weights_only=True)
+        except pickle.UnpicklingError:
+            raise RunError(f"{self.checkpoint_path}: refused: it holds Python objects, not only tensors and plain "
+                           f"data, and loading them could run code (this project's checkpoints hold data only)") from None
+        except Exception as exc:  # torch raises several types for damaged files
+            raise RunError(f"{self.checkpoint_path}: cannot read checkpoint ({_first_line(exc)})") from None
+
+    def acquire_lock(self) -> None:
+        """Hold an exclusive OS lock on RUN/.lock for the life of this process; a second
+        trainer on the same folder gets a clear error. The OS drops it even on kill -9."""
+        self.path.mkdir(parents=True, exist_ok=True)
+        lock = self.path / LOCK_NAME
+        while True:
+            handle = open(lock, "a+")
+            try:
+                _lock_file(handle)
+            except OSError:
+                handle.close()
+                raise RunError(f"{self.path}: {IN_USE}") from None
+            # A trainer that just finished removes its lock file: if ours was that file, the
+            # lock we hold is on a name nobody sees any more; take the new one instead.
+            if lock.is_file() and os.path.samestat(os.fstat(handle.fileno()), os.stat(lock)):
+                break
+            handle.close()
+        handle.seek(0)
+        handle.truncate()
+        handle.write(str(os.getpid()))
+        handle.flush()
+        self._lock_handle = handle
+        remove_stale_temporaries(self.path)  # a killed trainer's half-written checkpoint
+
+    def in_use(self) -> bool:
+        """True while another process holds this folder's lock (creates nothing)."""
+        lock = self.path / LOCK_NAME
+        if not lock.is_file():
+            return False
+        with open(lock, "r+") as handle:
+            try:
+                _lock_file(handle)
+            except OSError:
+                return True
+        return False  # closing the handle released the probe's lock
+
+    def release_lock(self) -> None:
+        """Drop the lock and remove RUN/.lock (still holding it, so no one else's is removed)."""
+        if self._lock_handle is not None:
+            try:
+                (self.path / LOCK_NAME).unlink()
+            except OSError:  # Windows will not remove an open file; the lock still goes
+                pass
+            self._lock_handle.close()
+            self._lock_handle = None
+
+
+def _lock_file(handle) -> None:
+    try:
+        import fcntl
+    except ImportError:  # Windows
+        import msvcrt
+
+        handle.seek(0)
+        msvcrt.locking(handle.fileno(), msvcrt.LK_NBLCK, 1)
+        return
+    fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -1,0 +1,191 @@
+"""Scoring renders against a dataset's ground truth: PSNR, SSIM, LPIPS and depth error, per
+view and mean.
+
+Colour: both sides are 8-bit images (what is on disk) as float RGB in [0, 1]; the ground
+truth's RGBA is composited over white, as the NeRF renders are. Depth: where the dataset has
+ground-truth depth (``depth_file_path``, distance along the ray, alpha in ``A``) and the renders
+folder has ``STEM_depth.exr`` (this project's renders: expected distance ``Z`` and opacity
+``A``), the mean absolute error on pixels that are foreground in both (alpha > 0.5), with the
+rendered distance divided by its opacity so that a half-transparent pixel is not counted
+as nearer than it is.
+
+The renders may come from any tool: ``STEM.png`` per ground-truth view is all that is needed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image, ImageDraw, ImageFont
+
+from ..core.errors import NerfError
+from ..core.files import read_exr, write_json, write_png
+from ..data.dataset import DatasetSplit, composite, load_split
+from ..data.run_folder import RunFolder
+from ..metrics.lpips_metric import LpipsUnavailable, load_lpips
+from ..metrics.registry import METRICS, MetricTools, mean_scores, score_image, summary_line, unavailable_reasons
+from .error_images import ERROR_SCALE, error_heatmap
+from .inference import render_split, renders_are_current
+
+FOREGROUND_ALPHA = 0.5
+DEPTH_MASK = f"pixels whose ground-truth alpha and rendered opacity both exceed {FOREGROUND_ALPHA}"
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    """An image on disk as float RGB in [0, 1]; RGBA is composited over white."""
+    if not path.is_file():
+        raise NerfError(f"{path}: render not found")
+    try:
+        with Image.open(path) as image:
+            rgba = torch.from_numpy(np.asarray(image.convert("RGBA")).copy())
+    except OSError as exc:
+        raise NerfError(f"{path}: cannot read image ({exc})") from None
+    return composite(rgba).numpy()
+
+
+def depth_error(truth_path: Path, render_path: Path) -> tuple[float | None, int]:
+    """Mean absolute depth error over the pixels foreground in both, and their count."""
+    truth, render = read_exr(truth_path), read_exr(render_path)
+    for path, channels in ((truth_path, truth), (render_path, render)):
+        if not {"Z", "A"} <= set(channels):
+            raise NerfError(f"{path}: depth EXR needs channels Z and A, has {sorted(channels)}")
+    if truth["Z"].shape != render["Z"].shape:
+        raise NerfError(f"{render_path}: depth size {render['Z'].shape} differs from the ground truth's {truth['Z'].shape}")
+    mask = (truth["A"] > FOREGROUND_ALPHA) & (render["A"] > FOREGROUND_ALPHA)
+    count = int(mask.sum())
+    if count == 0:
+        return None, 0
+    rendered_distance = render["Z"][mask] / render["A"][mask]
+    return float(np.abs(rendered_distance - truth["Z"][mask]).mean()), count
+
+
+def score_renders(split: DatasetSplit, renders_dir: Path, tools: MetricTools) -> dict:
+    """Every metric of the registry for ``renders_dir/STEM.png`` against each view of
+    ``split``, per view and as means; a metric the ``tools`` cannot compute (LPIPS without
+    its weights) is None with the reason beside it."""
+    per_view = []
+    depth_reason = None
+    for index, gt_path in enumerate(split.image_paths):
+        render_path = renders_dir / f"{gt_path.stem}.png"
+        rendered = read_rgb(render_path)
+        reference = split.rgb_on_white(index).numpy()
+        if rendered.shape != reference.shape:
+            raise NerfError(f"{render_path}: size {rendered.shape[1]}×{rendered.shape[0]} differs from "
+                            f"the ground truth's {reference.shape[1]}×{reference.shape[0]}")
+        view = {"view": gt_path.stem, **score_image(rendered, reference, tools), "depth_mae": None, "depth_pixels": 0}
+        truth_depth, render_depth = split.depth_path(index), renders_dir / f"{gt_path.stem}_depth.exr"
+        if truth_depth is None:
+            depth_reason = "the dataset has no ground-truth depth (no 'depth_file_path' in its frames)"
+        elif not truth_depth.is_file():
+            depth_reason = f"{truth_depth}: ground-truth depth file not found"
+        elif not render_depth.is_file():
+            depth_reason = f"the renders have no depth ({render_depth.name} not found)"
+        else:
+            view["depth_mae"], view["depth_pixels"] = depth_error(truth_depth, render_depth)
+        per_view.append(view)
+    depth_values = [v["depth_mae"] for v in per_view if v["depth_mae"] is not None]
+    depth_mean = float(np.mean(depth_values)) if depth_values else None
+    return {
+        "split": split.name,
+        "views": len(per_view),
+        **mean_scores(per_view),
+        "metrics": [metric.describe() for metric in METRICS],
+        "lpips_net": "AlexNet, LPIPS v0.1",
+        "lpips_unavailable": None,
+        **unavailable_reasons(tools),
+        "depth_mae": depth_mean,
+        "depth_mask": DEPTH_MASK,
+        "depth_unavailable": None if depth_mean is not None else (depth_reason or "no foreground pixels in common"),
+        "background": "white: ground-truth RGBA composited as rgb·α + (1 − α); renders as written",
+        "images": "8-bit PNGs on both sides, as float RGB in [0, 1]",
+        "ssim_settings": "11×11 Gaussian window, σ = 1.5, RGB in [0, 1] (scikit-image's structural_similarity)",
+        "per_view": per_view,
+    }
+
+
+METRICS_NAME = "metrics.json"
+
+
+def metric_tools(weights: Path | None, linear: Path | None, device: torch.device) -> MetricTools:
+    """What the metrics need: the LPIPS network, or the reason it is unavailable (never a
+    made-up number)."""
+    try:
+        return MetricTools(lpips=load_lpips(weights, linear, device))
+    except LpipsUnavailable as exc:
+        return MetricTools(lpips_unavailable=str(exc))
+
+
+def evaluate_run(run_path: Path, split: str, device: torch.device, lpips_weights: Path | None = None,
+                 lpips_linear: Path | None = None, chunk: int | None = None, progress: bool = True) -> dict:
+    """Render ``split`` with the run's latest checkpoint if its renders are stale, score
+    them, and write ``RUN/metrics.json``."""
+    run = RunFolder(run_path)
+    stored = run.read_config()
+    if not renders_are_current(run, split):
+        render_split(run, split, device, chunk=chunk, progress=progress)
+    tools = metric_tools(lpips_weights, lpips_linear, device)
+    metrics = score_renders(load_split(stored["dataset"], split), run.renders_dir(split), tools)
+    metrics.update(dataset=stored["dataset"], renders=str(run.renders_dir(split).resolve()))
+    write_json(run.path / METRICS_NAME, metrics)
+    return metrics
+
+
+def evaluate_renders(dataset: Path, renders: Path, split: str, device: torch.device, out_dir: Path | None = None,
+                     lpips_weights: Path | None = None, lpips_linear: Path | None = None) -> dict:
+    """Score a folder of renders made by any tool (``STEM.png`` per view of ``split``) and
+    write ``metrics.json`` into ``out_dir`` (default: the renders folder)."""
+    if not renders.is_dir():
+        raise NerfError(f"{renders}: renders folder not found")
+    tools = metric_tools(lpips_weights, lpips_linear, device)
+    metrics = score_renders(load_split(dataset, split), renders, tools)
+    metrics.update(dataset=str(Path(dataset).resolve()), renders=str(renders.resolve()))
+    out_dir = out_dir or renders
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_json(out_dir / METRICS_NAME, metrics)
+    return metrics
+
+
+def compare_images(reference: Path, render: Path, out_dir: Path, device: torch.device,
+                   lpips_weights: Path | None = None, lpips_linear: Path | None = None) -> dict:
+    """One render against one reference image (e.g. Cycles and the NeRF from the same
+    camera): PSNR, SSIM, LPIPS (or why not), and ``difference.png``, the error heatmap on the
+    report's scale. Written to ``out_dir/compare.json``."""
+    a, b = read_rgb(render), read_rgb(reference)
+    if a.shape != b.shape:
+        raise NerfError(f"{render}: size {a.shape[1]}×{a.shape[0]} differs from {reference}'s {b.shape[1]}×{b.shape[0]}")
+    tools = metric_tools(lpips_weights, lpips_linear, device)
+    result = {
+        "reference": str(reference), "render": str(render), **score_image(a, b, tools),
+        "metrics": [metric.describe() for metric in METRICS], "lpips_unavailable": None, **unavailable_reasons(tools),
+        "difference": str(out_dir / "difference.png"),
+        "difference_scale": f"mean |render - reference| per pixel, 0 to {ERROR_SCALE} (inferno)",
+        "side_by_side": str(out_dir / "side_by_side.png"),
+    }
+    heatmap = error_heatmap(a, b)
+    write_png(out_dir / "difference.png", heatmap)
+    caption = summary_line(result, separator="   ")
+    write_png(out_dir / "side_by_side.png", side_by_side(
+        [(b, "Cycles (reference)"), (a, "NeRF"), (heatmap, f"|difference|, 0 to {ERROR_SCALE}")], caption))
+    write_json(out_dir / "compare.json", result)
+    return result
+
+
+def side_by_side(images: list[tuple[np.ndarray, str]], caption: str, min_tile: int = 256) -> np.ndarray:
+    """Images (H×W×3 floats in [0, 1], one size) in a row, each titled, over a caption line:
+    what the add-on shows in Blender's Image Editor after a comparison. Small images are
+    enlarged by whole pixels (no smoothing hides the NeRF's errors)."""
+    height, width = images[0][0].shape[:2]
+    scale = max(1, -(-min_tile // max(height, width)))
+    text_height, gap = 22, 4
+    canvas = Image.new("RGB", (len(images) * (width * scale + gap) - gap, height * scale + 2 * text_height), "white")
+    draw = ImageDraw.Draw(canvas)
+    font = ImageFont.load_default(size=14)
+    for index, (pixels, title) in enumerate(images):
+        tile = Image.fromarray(np.clip(np.round(pixels[..., :3] * 255.0), 0, 255).astype(np.uint8))
+        x = index * (width * scale + gap)
+        canvas.paste(tile.resize((width * scale, height * scale), Image.Resampling.NEAREST), (x, text_height))
+        draw.text((x + 4, 3), title, fill="black", font=font)
+    draw.text((4, height * scale + text_height + 3), caption, fill="black", font=font)
+    return np.asarray(canvas, dtype=np.float32) / 255.0

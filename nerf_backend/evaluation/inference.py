@@ -1,0 +1,82 @@
+"""Using a trained run: load its model and render a split's views into RUN/renders/SPLIT."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import torch
+
+from ..configs.train_config import TrainConfig
+from ..core.files import write_json
+from ..core.progress import Progress
+from ..data.dataset import load_cameras, load_scene_bounds, load_split
+from ..data.run_folder import RunFolder
+from ..model_components.ray_bounds import RayBounds, choose_ray_bounds
+from ..models.base import Model
+from ..models.registry import build_model
+from .render_views import render_poses
+
+RENDERS_RECORD = "renders.json"
+
+
+def load_trained_model(run: RunFolder, device: torch.device) -> tuple[Model, RayBounds, dict]:
+    """The run's model with its latest checkpoint, its ray bounds, and the checkpoint's
+    iteration and training time."""
+    stored = run.read_config()
+    config = TrainConfig.from_dict(stored["config"])
+    state = run.load_checkpoint(device)
+    ray_bounds, _ = choose_ray_bounds(config.ray_bounds, load_scene_bounds(stored["dataset"]))
+    model = build_model(config, ray_bounds.box).to(device)
+    model.restore(state["model"])
+    model.eval()
+    return model, ray_bounds, {"iteration": state["iteration"], "train_seconds": state["train_seconds"]}
+
+
+def view_stem(image_path: Path) -> str:
+    return image_path.stem
+
+
+def render_split(run: RunFolder, split: str, device: torch.device, chunk: int | None = None,
+                 progress: bool = True, scale: float = 1.0) -> Path:
+    """Render every view of ``split`` with the run's latest checkpoint; returns the folder
+    (``RUN/renders/SPLIT``, or ``RUN/renders/SPLIT_xSCALE`` at ``scale`` times the dataset's
+    resolution, so the renders that ``eval`` scores keep their size).
+
+    The folder's ``renders.json`` records the checkpoint iteration, so stale renders (from
+    before the run trained further) are recognised, and the seconds each view took."""
+    stored = run.read_config()
+    dataset_split = load_split(stored["dataset"], split)
+    model, ray_bounds, state = load_trained_model(run, device)
+    intrinsics = dataset_split.intrinsics if scale == 1.0 else dataset_split.intrinsics.scaled(scale)
+    out_dir = run.renders_dir(split) if scale == 1.0 else run.path / "renders" / f"{split}_x{scale:g}"
+    stems = [view_stem(p) for p in dataset_split.image_paths]
+    bar = Progress(len(stems), f"render {split}", unit="view", enabled=progress)
+    start = time.perf_counter()
+    render_poses(model, intrinsics, dataset_split.poses, stems, ray_bounds, out_dir,
+                 chunk=chunk, on_view=lambda i: bar.update(1))
+    bar.close()
+    write_json(out_dir / RENDERS_RECORD, {
+        "split": split, "iteration": state["iteration"], "views": stems, "size": [intrinsics.width, intrinsics.height],
+        "seconds_per_view": (time.perf_counter() - start) / len(stems), "device": str(device),
+        "image": "RGB over white, 8-bit PNG", "depth": "STEM_depth.exr: Z = expected ray distance, A = opacity",
+    })
+    return out_dir
+
+
+def render_cameras(run: RunFolder, cameras_json: Path, out_dir: Path, device: torch.device,
+                   chunk: int | None = None) -> list[Path]:
+    """Render the cameras of a transforms JSON (no images needed) into ``out_dir``."""
+    cameras = load_cameras(cameras_json)
+    model, ray_bounds, _ = load_trained_model(run, device)
+    return render_poses(model, cameras.intrinsics, cameras.poses, cameras.stems, ray_bounds, out_dir, chunk=chunk)
+
+
+def renders_are_current(run: RunFolder, split: str) -> bool:
+    """True when RUN/renders/SPLIT was rendered from the run's latest checkpoint."""
+    record = run.renders_dir(split) / RENDERS_RECORD
+    if not record.exists() or not run.checkpoint_path.exists():
+        return False
+    rendered_iteration = json.loads(record.read_text()).get("iteration")
+    return rendered_iteration == run.load_checkpoint(torch.device("cpu"))["iteration"]

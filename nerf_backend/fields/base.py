@@ -1,0 +1,68 @@
+"""What a marched model asks of its field: density and colour at world points over the
+scene's box, and an estimate of where density is, for the occupancy grid. A new field that
+implements these is marched, trained, rendered and benched with no other change."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from ..core.scene_bounds import SceneBounds
+
+
+class MarchableField(nn.Module):
+    """``density(x [P,3]) -> [P]`` and ``colour(x [P,3], d [P,3]) -> [P,3]`` in world space,
+    over ``box`` (points outside it are never asked for)."""
+
+    def __init__(self, box: SceneBounds) -> None:
+        super().__init__()
+        self.register_buffer("box_min", torch.tensor(box.box_min, dtype=torch.float32))
+        self.register_buffer("box_max", torch.tensor(box.box_max, dtype=torch.float32))
+        self.extent = tuple(hi - lo for lo, hi in zip(box.box_min, box.box_max))
+
+    def normalise(self, x: Tensor) -> Tensor:
+        """World points → [-1, 1] over the box."""
+        return (x - self.box_min) / (self.box_max - self.box_min) * 2.0 - 1.0
+
+    def density(self, x: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def colour(self, x: Tensor, directions: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def forward(self, x: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+        """Density and colour of the same points in one call (a field that shares work
+        between them overrides this)."""
+        return self.density(x), self.colour(x, directions)
+
+    def occupancy_cells(self) -> tuple[int, int, int]:
+        """Cells per axis of the occupancy grid over the box (the march's step follows them)."""
+        raise NotImplementedError
+
+    def occupancy_estimate(self) -> tuple[Tensor, float]:
+        """The largest density in each occupancy cell ``[Gx, Gy, Gz]`` (an exact bound where
+        the field allows one, else an estimate) and the field's mean density."""
+        raise NotImplementedError
+
+    def density_volume(self) -> Tensor | None:
+        """A precomputed form of the density for fast reads without gradients, or None."""
+        return None
+
+    def density_from_volume(self, volume: Tensor | None, x: Tensor) -> Tensor:
+        """``density(x)`` read from ``density_volume()``'s result."""
+        return self.density(x)
+
+    def encoding_parameters(self) -> list[nn.Parameter]:
+        """Parameters of the spatial encoding (grids, hash tables): the optimiser gives them
+        the encoding learning rate, every other parameter the network one."""
+        return []
+
+    def before_step(self, iteration: int) -> bool:
+        """Schedules of the field's own (a grid's upsampling). True when the parameters
+        were replaced, so the optimiser and the occupancy grid must follow."""
+        return False
+
+    def match_state(self, state: dict[str, Tensor]) -> bool:
+        """Take the shapes a checkpoint's ``state`` (this field's entries) was saved with.
+        True when the field changed shape."""
+        return False

@@ -1,0 +1,155 @@
+"""The fast field: density and colour from factorised grids plus a small colour MLP.
+
+Density is a linear read-out of one ``VectorMatrixGrid`` through a shifted softplus (so a
+new field starts near-empty and smooth). Colour comes from a second grid's features
+through a two-layer MLP, with the viewing direction's encoding as an input only when the
+field is view-dependent. Colour is computed only where the caller asks (samples that carry
+weight), which is where most of the speed of the fast preset comes from.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from ..core.scene_bounds import SceneBounds, vertices_for
+from ..field_components.encodings import PositionalEncoding
+from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
+from .base import MarchableField
+
+
+@dataclass(frozen=True)
+class GridFieldConfig:
+    # Grid vertices along the box's longest side at the end of training; the other sides get
+    # as many as keep the cells cubic (vertices_for), or as many as the longest side when
+    # cubic_cells is off (every axis alike, as before per-axis counts).
+    resolution: int = 128
+    cubic_cells: bool = True
+    # Coarse-to-fine: start at initial_resolution and grow geometrically to `resolution`,
+    # one step at each of upsample_iterations (cheap early steps, detail later).
+    initial_resolution: int = 128
+    upsample_iterations: tuple[int, ...] = ()
+    density_channels: int = 16
+    appearance_channels: int = 24
+    appearance_dims: int = 27
+    hidden_width: int = 64
+    view_dependent: bool = True
+    direction_frequencies: int = 2
+    # σ = density_scale · softplus(feature + density_shift): TensoRF's parametrisation.
+    density_shift: float = -10.0
+    density_scale: float = 25.0
+
+
+class GridField(MarchableField):
+    """``density(x [P,3]) -> [P]`` and ``colour(x [P,3], d [P,3]) -> [P,3]`` in world space.
+
+    Points outside ``box`` read the grid's border values; callers sample inside the box.
+    The occupancy grid's cells are the grid's cells.
+    """
+
+    def __init__(self, config: GridFieldConfig, box: SceneBounds) -> None:
+        super().__init__(box)
+        self.config = config
+        vertices = self.vertices_at(config.initial_resolution)
+        self.density_grid = VectorMatrixGrid(config.density_channels, vertices)
+        self.appearance_grid = VectorMatrixGrid(config.appearance_channels, vertices)
+        self.appearance_basis = nn.Linear(self.appearance_grid.out_dims, config.appearance_dims, bias=False)
+        self.direction_encoding = PositionalEncoding(3, config.direction_frequencies)
+        colour_in = config.appearance_dims + (self.direction_encoding.out_dims if config.view_dependent else 0)
+        self.colour_mlp = nn.Sequential(
+            nn.Linear(colour_in, config.hidden_width), nn.ReLU(inplace=True),
+            nn.Linear(config.hidden_width, config.hidden_width), nn.ReLU(inplace=True),
+            nn.Linear(config.hidden_width, 3),
+        )
+
+    @property
+    def resolution(self) -> int:
+        """Vertices along the box's longest side."""
+        return max(self.density_grid.vertices)
+
+    @property
+    def vertices(self) -> Vertices:
+        return self.density_grid.vertices
+
+    def resolution_after(self, iteration: int) -> int:
+        """The schedule: the grid resolution once ``iteration`` steps have been taken."""
+        config = self.config
+        done = sum(1 for at in config.upsample_iterations if iteration >= at)
+        if done == 0:
+            return config.initial_resolution
+        ratio = (config.resolution / config.initial_resolution) ** (done / len(config.upsample_iterations))
+        return round(config.initial_resolution * ratio)
+
+    def vertices_at(self, resolution: int) -> Vertices:
+        """The vertices on each axis for ``resolution`` along the box's longest side."""
+        return vertices_for(resolution, self.extent) if self.config.cubic_cells else (resolution,) * 3
+
+    def resize(self, vertices: Vertices) -> None:
+        self.density_grid.resize(vertices)
+        self.appearance_grid.resize(vertices)
+
+    def density_from_features(self, summed: Tensor) -> Tensor:
+        # float32 whatever precision autocast ran the products in: volume rendering needs it.
+        return self.config.density_scale * F.softplus(summed.float() + self.config.density_shift)
+
+    def density(self, x: Tensor) -> Tensor:
+        return self.density_from_features(self.density_grid(self.normalise(x)).sum(dim=-1))
+
+    def colour(self, x: Tensor, directions: Tensor) -> Tensor:
+        features = self.appearance_basis(self.appearance_grid(self.normalise(x)))
+        if self.config.view_dependent:
+            features = torch.cat([features, self.direction_encoding(directions)], dim=-1)
+        return torch.sigmoid(self.colour_mlp(features).float())
+
+    @torch.no_grad()
+    def density_volume(self) -> Tensor:
+        """The density's pre-activation at every vertex, ``[1, 1, Nz, Ny, Nx]`` laid out (z, y, x)
+        for ``grid_sample``. Each grid component is bilinear × linear, i.e. trilinear, so a
+        trilinear read of this volume equals the factorised grid's value: one 1-channel
+        lookup instead of six many-channel ones (what inference uses)."""
+        return self.density_grid.dense_sum()[None, None]
+
+    def density_from_volume(self, volume: Tensor, x: Tensor) -> Tensor:
+        """``density(x)`` read from ``density_volume()``'s result."""
+        grid = self.normalise(x).view(1, -1, 1, 1, 3)  # grid_sample's (x, y, z) = (W, H, D)
+        summed = F.grid_sample(volume, grid, mode="bilinear", align_corners=True).view(-1)
+        return self.density_from_features(summed)
+
+    @torch.no_grad()
+    def vertex_density(self) -> Tensor:
+        """Density at every grid vertex ``[Nx, Ny, Nz]``: within each grid cell the
+        density's pre-activation is trilinear, so these bound the density in the cell."""
+        return self.density_from_features(self.density_grid.dense_sum().permute(2, 1, 0))
+
+    def occupancy_cells(self) -> Vertices:
+        return tuple(n - 1 for n in self.vertices)  # type: ignore[return-value]
+
+    @torch.no_grad()
+    def occupancy_estimate(self) -> tuple[Tensor, float]:
+        """Each cell's largest corner density: exact, because the pre-activation is
+        trilinear inside a cell and the activation is monotone."""
+        density = self.vertex_density()
+        cell_max = F.max_pool3d(density[None, None], kernel_size=2, stride=1)[0, 0]
+        return cell_max, float(density.mean())
+
+    def encoding_parameters(self) -> list[nn.Parameter]:
+        return [*self.density_grid.parameters(), *self.appearance_grid.parameters()]
+
+    def before_step(self, iteration: int) -> bool:
+        """Upsample on schedule (coarse-to-fine)."""
+        if self.resolution_after(iteration) == self.resolution:
+            return False
+        self.resize(self.vertices_at(self.resolution_after(iteration)))
+        return True
+
+    def match_state(self, state: dict[str, Tensor]) -> bool:
+        """Take the vertices a checkpoint was saved with (also cubic grids from before each
+        axis had its own count)."""
+        (nx, ny), nz = state["density_grid.planes.0"].shape[-2:], state["density_grid.planes.1"].shape[-1]
+        if (nx, ny, nz) == self.vertices:
+            return False
+        self.resize((nx, ny, nz))
+        return True

@@ -1,0 +1,19 @@
+"""What rendering a batch of rays returns, whatever the model."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from torch import Tensor
+
+
+@dataclass
+class RenderOutput:
+    """What one pass renders for each ray."""
+
+    rgb: Tensor  # [R, 3], composited over the background
+    depth: Tensor  # [R], expected distance along the ray (0 where empty)
+    opacity: Tensor  # [R], 1 - final transmittance
+    # Per-sample detail for training; None from renders that stop rays early (inference).
+    weights: Tensor | None  # [R, S]
+    t_edges: Tensor | None  # [R, S+1]

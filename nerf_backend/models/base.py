@@ -1,0 +1,93 @@
+"""The model contract: what the trainer, the renderer and the bench may ask of any model.
+
+A model renders a batch of rays: ``forward(origins, directions, t_near, t_far, background,
+generator) -> list[RenderOutput]``; the training loss sums the squared error of every output
+(the paper's coarse + fine) and the last output is the image (``final_output``). A model
+declares its optimiser's parameter groups, keeps its own state between steps
+(``before_step``) and takes the shapes of a checkpoint it is loaded from (``match_state``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+from torch import Tensor, nn
+
+from ..core.scene_bounds import SceneBounds
+from ..data.occupancy_prior import OccupancyPrior
+from ..fields.grid_field import GridFieldConfig
+from ..fields.hash_field import HashFieldConfig
+from ..fields.mlp_field import FieldConfig
+from ..model_components.render_output import RenderOutput
+from ..model_components.samplers import SamplingConfig
+
+
+class ModelSettings(Protocol):
+    """The settings models read (the run's ``TrainConfig`` has them, among training ones)."""
+
+    model: str
+    field: FieldConfig
+    sampling: SamplingConfig
+    grid: GridFieldConfig
+    hash: HashFieldConfig
+    grid_step_ratio: float
+    occupancy_warmup: int
+    occupancy_every: int
+    occupancy_alpha_threshold: float
+
+
+@dataclass(frozen=True)
+class ParameterGroup:
+    """Parameters the optimiser treats alike; ``learning_rate`` names the setting that gives
+    their rate (``"learning_rate"`` or ``"network_learning_rate"``)."""
+
+    name: str
+    parameters: list[nn.Parameter]
+    learning_rate: str
+
+
+class Model(nn.Module):
+    """Base of every model; subclasses implement ``forward`` and ``build``."""
+
+    # Rays per forward pass when rendering whole images, unless the caller names its own.
+    # Measured on 2 CPU cores (preview preset, 100×100 view): 1024 rays took 1.7 s a view,
+    # 4096 took 2.6 s, 8192 took 3.1 s (larger activations cost page faults).
+    render_chunk: int = 1024
+    # Whether the model reads the dataset's occupancy prior (where the scene can be).
+    uses_occupancy_prior: bool = False
+
+    @classmethod
+    def build(cls, settings: ModelSettings, box: SceneBounds | None, prior: OccupancyPrior | None) -> "Model":
+        """A new model for ``settings`` over the scene's ``box`` (None: no box known)."""
+        raise NotImplementedError
+
+    def forward(
+        self, origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor,
+        background: Tensor | float = 1.0, generator: torch.Generator | None = None,
+    ) -> list[RenderOutput]:
+        raise NotImplementedError
+
+    def parameter_groups(self) -> list[ParameterGroup]:
+        """The optimiser's groups, in a fixed order (checkpoints store the optimiser by it)."""
+        return [ParameterGroup("networks", list(self.parameters()), "learning_rate")]
+
+    def before_step(self, iteration: int) -> bool:
+        """Called before each training step. True when the parameters were replaced (the
+        optimiser must be rebuilt)."""
+        return False
+
+    def match_state(self, state: dict[str, Tensor]) -> None:
+        """Take the shapes the checkpoint ``state`` was saved with, so its tensors load."""
+
+    def restore(self, state: dict[str, Tensor]) -> None:
+        """Load a checkpoint's weights, at the shapes they were saved with (a grid upsampled
+        since the model was built): what both resuming and rendering do."""
+        self.match_state(state)
+        self.load_state_dict(state)
+
+
+def final_output(outputs: list[RenderOutput]) -> RenderOutput:
+    """The output whose image is the model's answer (the paper's fine pass)."""
+    return outputs[-1]

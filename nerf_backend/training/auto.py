@@ -1,0 +1,125 @@
+"""The ``auto`` preset: the fast model, shaped by what the scene needs.
+
+Blender knows the scene, and the dataset carries that knowledge (``scene_profile.json``)
+along with the images. Each decision is returned with its reason and recorded in the
+run's ``config.json``:
+
+- bounds: the scene's box (from the profile) limits every ray and the grids;
+- view dependence: no glossy, metallic, specular, transmissive, clearcoat or sheen material
+  → colour takes no direction input;
+- detail: the grid needs no vertex finer than the footprint of a pixel on the scene
+  (Nyquist for the training images), so its resolution is the box size over that footprint;
+- samples: one march step per grid cell covers the depth range at that same detail;
+- background: a transparent film gives an alpha channel, so training composites over
+  random colours and the alpha decides what is background;
+- empty space: where the dataset carries Blender's own geometry as an occupancy prior,
+  the occupancy grid starts from it and never marks what it leaves out, so empty space is
+  skipped from the first step and nothing can grow there.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import torch
+
+from ..configs.train_config import TrainConfig
+from ..core.scene_bounds import SceneBounds, vertices_for
+from ..data.dataset import DatasetSplit
+
+MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
+# Which of the prior's fills auto uses (measured with bench: see the README).
+PRIOR_KIND = "solid"
+
+
+def pixel_footprint(split: DatasetSplit, box: SceneBounds) -> float:
+    """Mean size (world units) of one pixel at the box's centre, over the training cameras."""
+    centre = (torch.tensor(box.box_min) + torch.tensor(box.box_max)) / 2
+    distances = (split.poses[:, :3, 3] - centre).norm(dim=-1)
+    focal = (split.intrinsics.fl_x + split.intrinsics.fl_y) / 2
+    return float(distances.mean()) / focal
+
+
+def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profile: dict | None,
+                user_set: frozenset[str] = frozenset()) -> tuple[TrainConfig, dict]:
+    """``base`` (the fast preset, with the user's ``--set`` changes) adjusted to the scene,
+    and the decisions with reasons. A setting in ``user_set`` (dotted keys given with
+    ``--set``) is the user's: auto keeps it and records what it would have chosen."""
+    decisions: dict[str, dict] = {}
+
+    def choose(name: str, key: str, chosen, reason: str, **details):
+        if key in user_set:
+            value = _setting(base, key)
+            decisions[name] = {"value": value, **details,
+                               "reason": f"set with --set {key}; auto would choose {chosen!r}: {reason}"}
+            return value
+        decisions[name] = {"value": chosen, **details, "reason": reason}
+        return chosen
+
+    if profile is not None and isinstance(profile.get("view_dependent"), bool):
+        dependent = profile["view_dependent"]
+        reason = ("the scene has view-dependent materials" if dependent
+                  else "every material is diffuse: colour needs no viewing direction")
+    else:
+        dependent = base.grid.view_dependent
+        reason = "the dataset does not say whether its materials are view-dependent: keep direction input"
+    view_dependent = choose("view_dependence", "grid.view_dependent", dependent, reason)
+
+    footprint = pixel_footprint(split, box)
+    sides = tuple(hi - lo for lo, hi in zip(box.box_min, box.box_max))
+    extent = max(sides)
+    per_pixel = math.ceil(extent / footprint) + 1
+    reason = (f"a pixel covers {footprint:.4f} units at the scene's centre and the box is {extent:.3f} across: "
+              f"{per_pixel} vertices a side resolve every pixel")
+    wanted = per_pixel
+    if base.grid.cubic_cells:
+        # The cells a cube of that resolution would have, spread over the box with cubic
+        # cells: a flat or long box gets finer cells along its long sides for the same cost.
+        cell = math.prod(sides) ** (1 / 3) / (per_pixel - 1)
+        wanted = round(extent / cell) + 1
+        if wanted != per_pixel:
+            reason += (f"; the box is not a cube ({' × '.join(f'{side:.2f}' for side in sides)}): the "
+                       f"{(per_pixel - 1) ** 3:,} cells of a {per_pixel}-vertex cube, spread over it as cubic "
+                       f"cells of {cell:.4f}, give {wanted} vertices along its longest side")
+    clamped = max(MIN_RESOLUTION, min(MAX_RESOLUTION, wanted))
+    if clamped != wanted:
+        reason += f" (clamped to [{MIN_RESOLUTION}, {MAX_RESOLUTION}])"
+    vertices = vertices_for(clamped, sides) if base.grid.cubic_cells else (clamped,) * 3
+    resolution = choose("grid_resolution", "grid.resolution", clamped,
+                        reason + f"; vertices per axis {vertices[0]}×{vertices[1]}×{vertices[2]}",
+                        vertices=list(vertices))
+    initial = min(base.grid.initial_resolution, resolution)
+    schedule = base.grid.upsample_iterations if resolution > initial else ()
+
+    transparent = bool((split.rgba[..., 3] < 255).any())
+    random_background = choose(
+        "background", "random_background", transparent,
+        ("the images have an alpha channel with transparent pixels (transparent film): random background "
+         "colours, the alpha as mask" if transparent
+         else "every pixel is opaque, so there is no background to separate: background is scene content"))
+
+    has_prior = profile is not None and isinstance(profile.get("occupancy_prior"), dict)
+    prior = choose(
+        "occupancy_prior", "occupancy_prior", PRIOR_KIND if has_prior else "none",
+        (f"the dataset holds Blender's geometry voxelised ({PRIOR_KIND}): empty space is skipped from the first step"
+         if has_prior else "the dataset has no occupancy prior: empty space is found from the field's own density"))
+
+    grid = dataclasses.replace(base.grid, resolution=resolution, initial_resolution=initial,
+                               upsample_iterations=schedule, view_dependent=view_dependent)
+    config = dataclasses.replace(base, preset="auto", grid=grid, random_background=random_background,
+                                 occupancy_prior=prior)
+    diagonal = math.sqrt(sum(side ** 2 for side in sides))
+    decisions["samples"] = {
+        "value": math.ceil(diagonal / (extent / (resolution - 1) * config.grid_step_ratio)) + 1,
+        "reason": "one march step per grid cell along the box's diagonal; empty cells are skipped",
+    }
+    return config, decisions
+
+
+def _setting(config: TrainConfig, key: str):
+    """The value of a dotted setting (``grid.resolution``)."""
+    value = config
+    for part in key.split("."):
+        value = getattr(value, part)
+    return value

@@ -1,0 +1,509 @@
+"""The training loop: batches of random rays, coarse + fine photometric loss, Adam with
+exponential learning-rate decay, validation as it goes, atomic checkpoints, resume and
+cancel (SIGINT/SIGTERM finish the step, save, and stop)."""
+
+from __future__ import annotations
+
+import shutil
+import signal
+import threading
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from ..configs.presets import preset_config
+from ..configs.train_config import TrainConfig, with_overrides
+from ..core.cameras import camera_rays, pixel_centres
+from ..core.devices import autocast_dtype, resolve_device
+from ..core.errors import NerfError, RunError
+from ..core.files import write_png
+from ..core.progress import Progress
+from ..data.dataset import DatasetSplit, composite, load_scene_bounds, load_scene_profile, load_split
+from ..data.occupancy_prior import PRIOR_KINDS, OccupancyPrior, load_occupancy_prior
+from ..data.run_folder import IN_USE, LOCK_NAME, RunFolder
+from ..evaluation.render_views import render_image
+from ..metrics.image_metrics import mse_to_psnr, psnr
+from ..model_components.ray_bounds import RayBounds, choose_ray_bounds
+from ..models.base import Model
+from ..models.registry import build_model, model_class
+from .auto import auto_config
+from .collapse_guard import CollapseGuard, Verdict, blank_psnr, recovery_config
+
+
+@dataclass
+class TrainOptions:
+    dataset: Path
+    run: Path
+    preset: str | None = None  # None on resume: the run's own
+    iterations: int | None = None  # total for the run; None: the preset's
+    max_seconds: float | None = None  # total training seconds for the run
+    seed: int = 0
+    overrides: tuple[str, ...] = ()  # KEY=VALUE changes to the preset (new runs only)
+    device: str = "auto"
+    resume: bool = False
+    overwrite: bool = False
+    progress: bool = True
+    validate: bool = True  # render validation views (False: timing runs that only train)
+
+
+@dataclass
+class TrainSummary:
+    iteration: int
+    train_seconds: float
+    stop_reason: str  # "iterations", "time", "cancelled" or "collapsed"
+    val_psnr: float | None
+    collapse: Verdict | None = None  # the guard's last verdict when the run ended collapsed
+    started_at: int = 0  # the iteration this call began at (a resumed run's checkpoint)
+
+    @property
+    def had_nothing_to_do(self) -> bool:
+        """A resumed run that was already at its iteration count or time budget."""
+        return self.started_at == self.iteration and self.stop_reason in ("iterations", "time")
+
+
+class _TrainingProgress:
+    """Progress over iterations, or over training seconds when a time budget will end the run
+    first (then the time left is the real one)."""
+
+    def __init__(self, iterations: int, iteration: int, max_seconds: float | None, seconds: float,
+                 enabled: bool, description: str) -> None:
+        self.by_time = max_seconds is not None
+        total, initial = (max_seconds, seconds) if self.by_time else (iterations, iteration)
+        self.bar = Progress(total, description, unit="s" if self.by_time else "it", initial=initial,
+                            enabled=enabled, seconds=self.by_time)
+        self.iteration = iteration
+
+    def step(self, iteration: int, seconds: float) -> None:
+        self.bar.advance_to(seconds if self.by_time else iteration)
+        self.iteration = iteration
+
+    def show(self, **values: str) -> None:
+        self.bar.set_postfix(it=self.iteration, **values) if self.by_time else self.bar.set_postfix(**values)
+
+    def note(self, message: str) -> None:
+        """A line above the bar (or alone on stderr when the bar is off): events the user must see."""
+        self.bar.write(message)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+class _StopRequest:
+    """Turns SIGINT/SIGTERM into a flag the loop checks between steps."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous: dict[int, object] = {}
+
+    def __enter__(self) -> "_StopRequest":
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        self.requested = True
+
+    def __exit__(self, *exc) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+def _existing_files(run: RunFolder) -> list[Path]:
+    return [p for p in run.path.iterdir() if p.name != LOCK_NAME] if run.path.is_dir() else []
+
+
+def _refuse_to_overwrite(run: RunFolder, options: TrainOptions, holding_lock: bool) -> None:
+    """A non-empty folder is reused only when resuming or told to overwrite."""
+    if not options.resume and not options.overwrite and _existing_files(run):
+        if not holding_lock and run.in_use():  # the probe would see our own lock
+            raise RunError(f"{run.path}: {IN_USE}")
+        raise RunError(f"{run.path}: run folder exists and is not empty; pass --resume to continue it or --overwrite to replace it")
+
+
+def _prepare_run_folder(run: RunFolder, options: TrainOptions) -> None:
+    """Under the lock: check again, then empty the folder for a new run."""
+    _refuse_to_overwrite(run, options, holding_lock=True)
+    if options.resume:
+        run.read_config()  # raises a clear error if this is not a run
+        return
+    for path in _existing_files(run):
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+
+
+def _load_val(dataset: Path) -> DatasetSplit | None:
+    return load_split(dataset, "val") if (dataset / "transforms_val.json").exists() else None
+
+
+def sample_ray_batch(
+    split: DatasetSplit, batch: int, generator: torch.Generator, precrop_fraction: float | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random (image, pixel) indices: ``image [B]`` and row-major ``pixel [B]``, drawn from
+    the central ``precrop_fraction`` of each image when given."""
+    count, height, width = split.rgba.shape[:3]
+    image = torch.randint(count, (batch,), generator=generator)
+    if precrop_fraction is None:
+        x = torch.randint(width, (batch,), generator=generator)
+        y = torch.randint(height, (batch,), generator=generator)
+    else:
+        half_w = max(1, int(width * precrop_fraction / 2))
+        half_h = max(1, int(height * precrop_fraction / 2))
+        x = torch.randint(width // 2 - half_w, width // 2 + half_w, (batch,), generator=generator)
+        y = torch.randint(height // 2 - half_h, height // 2 + half_h, (batch,), generator=generator)
+    return image, y * width + x
+
+
+def _optimizer(model: Model, config: TrainConfig) -> torch.optim.Optimizer:
+    """Adam over the model's own parameter groups, each at the learning rate it names
+    (``initial_lr`` is what decay scales). A model with only networks trains them at
+    ``learning_rate``; one with an encoding trains that at ``learning_rate`` and its networks
+    at ``network_learning_rate``."""
+    groups = [group for group in model.parameter_groups() if group.parameters]
+    if len(groups) == 1:
+        groups = [replace(groups[0], learning_rate="learning_rate")]
+    rates = [getattr(config, group.learning_rate) for group in groups]
+    return torch.optim.Adam([{"params": group.parameters, "initial_lr": rate, "lr": rate}
+                             for group, rate in zip(groups, rates)], betas=config.adam_betas, eps=config.adam_eps)
+
+
+def train(options: TrainOptions) -> TrainSummary:
+    dataset = Path(options.dataset).resolve()
+    # Read the whole dataset and settle the run before touching its folder: bad input
+    # (a broken dataset, a bad --set, a missing prior) leaves nothing behind.
+    train_split = load_split(dataset, "train")
+    val_split = _load_val(dataset) if options.validate else None
+    run = RunFolder(options.run)
+    _refuse_to_overwrite(run, options, holding_lock=False)  # before the lock: a refused folder gains no lock file
+    plan = _plan_run(run, dataset, train_split, options)
+    run.acquire_lock()
+    try:
+        _prepare_run_folder(run, options)
+        return _train_locked(run, plan, val_split, options)
+    finally:
+        run.release_lock()
+
+
+@dataclass
+class _RunPlan:
+    """What a run trains with: its settings, the decisions behind them and what it reads."""
+
+    dataset: Path
+    config: TrainConfig
+    seed: int
+    max_seconds: float | None
+    device: torch.device
+    train_split: DatasetSplit
+    ray_bounds: RayBounds
+    prior: OccupancyPrior | None
+    decisions: dict
+
+    def record(self) -> dict:
+        """The run's config.json."""
+        return {
+            "dataset": str(self.dataset),
+            "preset": self.config.preset,
+            "seed": self.seed,
+            "device": str(self.device),
+            "max_seconds": self.max_seconds,
+            "config": self.config.to_dict(),
+            "decisions": self.decisions,
+            "background": "white (RGBA composited as rgb·α + 1 − α)",
+            "image_size": [self.train_split.intrinsics.width, self.train_split.intrinsics.height],
+            "train_views": len(self.train_split),
+        }
+
+
+def _plan_run(run: RunFolder, dataset: Path, train_split: DatasetSplit, options: TrainOptions) -> _RunPlan:
+    """A new run's settings from its preset, ``--set`` and (``auto``) the scene; a resumed
+    run's from its folder. Reads only."""
+    device = resolve_device(options.device)
+    if options.resume:
+        stored = run.read_config()
+        if options.preset is not None and options.preset != stored["preset"]:
+            raise RunError(f"{run.path}: run was trained with preset {stored['preset']!r}, not {options.preset!r}")
+        if Path(stored["dataset"]) != dataset:
+            raise RunError(f"{run.path}: run was trained on {stored['dataset']}, not {dataset}")
+        if options.overrides:
+            raise RunError(f"{run.path}: --set applies to new runs; a resumed run keeps its config")
+        config = TrainConfig.from_dict(stored["config"])
+        seed = stored["seed"]
+        max_seconds = options.max_seconds if options.max_seconds is not None else stored.get("max_seconds")
+    else:
+        config = with_overrides(preset_config(options.preset or "preview"), list(options.overrides))
+        seed = options.seed
+        max_seconds = options.max_seconds
+    if options.iterations is not None:
+        config = replace(config, iterations=options.iterations)
+
+    if config.max_train_views is not None and config.max_train_views < len(train_split):
+        train_split = train_split.subset(config.max_train_views)
+    ray_bounds, bounds_reason = choose_ray_bounds(config.ray_bounds, load_scene_bounds(dataset))
+    decisions = {"ray_bounds": {**ray_bounds.describe(), "reason": bounds_reason}}
+    if options.resume:
+        decisions = stored.get("decisions", decisions)
+    elif config.preset == "auto":
+        user_set = frozenset(assignment.partition("=")[0] for assignment in options.overrides)
+        config, auto_decisions = auto_config(config, train_split, ray_bounds.box, load_scene_profile(dataset), user_set)
+        decisions.update(auto_decisions)
+    return _RunPlan(dataset, config, seed, max_seconds, device, train_split, ray_bounds,
+                    _occupancy_prior(dataset, config), decisions)
+
+
+def _train_locked(run: RunFolder, plan: _RunPlan, val_split: DatasetSplit | None, options: TrainOptions) -> TrainSummary:
+    # The checkpoint first: a resume it refuses (damaged, or holding code) leaves the run as it was.
+    state = run.load_checkpoint(plan.device) if options.resume and run.checkpoint_path.exists() else None
+    training = _Training(run, plan, val_split, options)
+    if state is not None:
+        training.restore(state)
+    return training.run()
+
+
+class _Training:
+    """One call of ``train``: the model, its optimiser and random generators, the counters,
+    and the steps of the loop (``run``), each a method."""
+
+    def __init__(self, run: RunFolder, plan: _RunPlan, val_split: DatasetSplit | None, options: TrainOptions) -> None:
+        self.run_folder, self.plan, self.val_split, self.options = run, plan, val_split, options
+        self.config = plan.config
+        self.device = plan.device
+        self.record = plan.record()
+        run.write_config(self.record)
+        self.amp_dtype = autocast_dtype(self.config.precision, self.device)
+        # float16's narrow range needs the loss scaled so small gradients do not flush to zero.
+        self.scaler = torch.amp.GradScaler(self.device.type, enabled=self.amp_dtype is torch.float16)
+        # A run that collapsed starts again at `start_iteration` (its schedules count from
+        # there); `attempt` counts those starts.
+        self.restart = {"attempt": 0, "start_iteration": 0}
+        self.model = _new_model(self.config, plan.ray_bounds, plan.prior, plan.seed, 0, self.device)
+        self.optimizer = _optimizer(self.model, self.config)
+        self.batch_generator = torch.Generator().manual_seed(plan.seed)
+        self.sample_generator = torch.Generator(device=self.device).manual_seed(plan.seed + 1)
+        self.iteration, self.train_seconds = 0, 0.0
+        self.rgba = plan.train_split.rgba.to(self.device)
+        self.poses = plan.train_split.poses.to(self.device)
+        self.score: _ViewScore | None = None
+        self.collapse: Verdict | None = None
+        self.guard = CollapseGuard(val_split, plan.ray_bounds, self.config.collapse_margin_db)
+        self.progress: _TrainingProgress | None = None
+
+    def restore(self, state: dict) -> None:
+        """Continue from a checkpoint: weights (at the shapes they were saved with), the
+        optimiser built for them, generators and counters."""
+        self.restart = state.get("restart", self.restart)
+        self.model.restore(state["model"])
+        self.optimizer = _optimizer(self.model, self.config)
+        self.optimizer.load_state_dict(state["optimizer"])
+        if "grad_scaler" in state:
+            self.scaler.load_state_dict(state["grad_scaler"])
+        self.batch_generator.set_state(state["batch_rng"])
+        self.sample_generator.set_state(state["sample_rng"].to(self.sample_generator.get_state().device))
+        self.iteration, self.train_seconds = state["iteration"], state["train_seconds"]
+
+    def run(self) -> TrainSummary:
+        config, run, options = self.config, self.run_folder, self.options
+        started_at = self.iteration
+        run.log_event("start", iteration=self.iteration, resumed=options.resume, preset=config.preset,
+                      device=str(self.device), cpu_threads=torch.get_num_threads(),
+                      target_iterations=config.iterations, max_seconds=self.plan.max_seconds)
+        self.progress = _TrainingProgress(config.iterations, self.iteration, self.plan.max_seconds,
+                                          self.train_seconds, enabled=options.progress,
+                                          description=f"train {config.preset}")
+        stop_reason = self._loop()
+        self.progress.close()
+        if self.val_split is not None and stop_reason != "collapsed":
+            stop_reason = self._final_validation(stop_reason)
+        self._checkpoint()
+        val_psnr = self.score.psnr if self.score is not None else None
+        run.log_event("done", iteration=self.iteration, elapsed_s=self.train_seconds, reason=stop_reason,
+                      val_psnr=val_psnr)
+        return TrainSummary(self.iteration, self.train_seconds, stop_reason, val_psnr, collapse=self.collapse,
+                            started_at=started_at)
+
+    def _loop(self) -> str:
+        """Steps until the iterations or the time budget are spent, a stop is asked for, or
+        the model collapses for good; returns why it stopped."""
+        max_seconds = self.plan.max_seconds
+        self.model.train()
+        with _StopRequest() as stop:
+            while self.iteration < self.config.iterations:
+                if max_seconds is not None and self.train_seconds >= max_seconds:
+                    return "time"
+                if stop.requested:
+                    return "cancelled"
+                self._step()
+                if self.val_split is not None and self.iteration % self.config.validate_every == 0:
+                    self._validate()
+                    if self._judged() and not self._survives_collapse_check():
+                        return "collapsed"
+                if self.iteration % self.config.checkpoint_every == 0:
+                    self._checkpoint()
+        return "iterations"
+
+    def _step(self) -> None:
+        """One optimiser step on a batch of random rays."""
+        config, device, model = self.config, self.device, self.model
+        step = self.iteration - self.restart["start_iteration"]  # the schedules' step
+        step_start = time.perf_counter()
+        width = self.rgba.shape[2]
+        precrop = config.precrop_fraction if step < config.precrop_iterations else None
+        image_index, pixel_index = sample_ray_batch(self.plan.train_split, config.rays_per_batch,
+                                                    self.batch_generator, precrop)
+        image_index, pixel_index = image_index.to(device), pixel_index.to(device)
+        pixels_rgba = self.rgba[image_index, pixel_index // width, pixel_index % width]
+        if config.random_background:
+            background = torch.rand((len(pixel_index), 3), generator=self.batch_generator).to(device)
+        else:
+            background = torch.ones((), device=device)
+        target = composite(pixels_rgba, background)
+        origins, directions = camera_rays(self.plan.train_split.intrinsics, self.poses[image_index],
+                                          pixel_centres(width, pixel_index))
+        t_near, t_far = self.plan.ray_bounds(origins, directions)
+        decay = config.learning_rate_decay(step)
+        for group in self.optimizer.param_groups:
+            group["lr"] = group["initial_lr"] * decay
+        if model.before_step(step):
+            self.optimizer = _optimizer(model, config)  # the parameters were replaced (a grid upsampled)
+        with torch.autocast(device.type, dtype=self.amp_dtype or torch.float32, enabled=self.amp_dtype is not None):
+            outputs = model(origins, directions, t_near, t_far, background=background,
+                            generator=self.sample_generator)
+        errors = [F.mse_loss(output.rgb.float(), target) for output in outputs]
+        loss = torch.stack(errors).sum()
+        if not torch.isfinite(loss):
+            self._diverged(f"loss {loss.item()}")
+        self.optimizer.zero_grad(set_to_none=True)
+        self.scaler.scale(loss).backward()
+        self.scaler.step(self.optimizer)
+        self.scaler.update()
+        self.iteration += 1
+        self.train_seconds += time.perf_counter() - step_start
+        self.progress.step(self.iteration, self.train_seconds)
+        if self.iteration % config.log_every == 0 or self.iteration == config.iterations:
+            batch_psnr = mse_to_psnr(errors[-1].item())
+            self.progress.show(loss=f"{loss.item():.4f}", psnr=f"{batch_psnr:.2f}")
+            self.run_folder.log_event("train", iteration=self.iteration, loss=loss.item(), psnr=batch_psnr,
+                                      lr=config.learning_rate_at(step + 1), elapsed_s=self.train_seconds)
+
+    def _validate(self) -> None:
+        self.score = _validate(self.model, self.val_split, self.plan.ray_bounds, self.run_folder, self.iteration,
+                               self.train_seconds, self.config.validate_every)
+
+    def _judged(self) -> bool:
+        """Whether this start of the run is old enough for the collapse guard to judge."""
+        return self.iteration - self.restart["start_iteration"] >= self.config.collapse_check_after
+
+    def _survives_collapse_check(self) -> bool:
+        """After a validation: False when the model has collapsed and cannot start again."""
+        self.collapse = self.guard.confirm(self.model, self.score.psnr, self.score.blank_psnr, self.iteration)
+        return self.collapse is None or self._restart_after_collapse()
+
+    def _final_validation(self, stop_reason: str) -> str:
+        """Validate the model as it ends (unless the last step just did). A run old enough to
+        judge never ends silently on a near-blank model; nor does one restarted after a
+        collapse, however young (a young first start is not yet called a failure: it may
+        simply not have started)."""
+        if self.score is None or self.score.iteration != self.iteration:
+            self._validate()
+        judged = self._judged() or self.restart["attempt"] >= 1
+        self.collapse = (self.guard.confirm(self.model, self.score.psnr, self.score.blank_psnr, self.iteration)
+                         if judged else None)
+        if self.collapse is None:
+            return stop_reason
+        self._report_collapse(self.collapse, f"none: the run ended ({stop_reason}) before it could recover", final=True)
+        return "collapsed"
+
+    def _restart_after_collapse(self) -> bool:
+        """After a collapse: start again once with the recovery config (True), else stop."""
+        if self.restart["attempt"] >= 1:
+            self._report_collapse(self.collapse, "stopped: it had already been restarted once", final=True)
+            return False
+        self.config, changes, reasons = recovery_config(self.config,
+                                                        has_transparency=bool((self.rgba[..., 3] < 255).any()))
+        action = "restarted from a new start with " + "; ".join(reasons)
+        self.plan.decisions["collapse_recovery"] = {"value": changes, "at_iteration": self.iteration,
+                                                    "reason": f"{self.collapse.describe()}: {action}"}
+        self.restart.update(attempt=self.restart["attempt"] + 1, start_iteration=self.iteration)
+        self.run_folder.write_config({**self.record, "config": self.config.to_dict(),
+                                      "decisions": self.plan.decisions})
+        self.model = _new_model(self.config, self.plan.ray_bounds, self.plan.prior, self.plan.seed,
+                                self.restart["attempt"], self.device)
+        self.optimizer = _optimizer(self.model, self.config)
+        self._report_collapse(self.collapse, action, final=False)
+        return True
+
+    def _report_collapse(self, verdict: Verdict, action: str, final: bool) -> None:
+        self.run_folder.log_event("collapse", iteration=verdict.iteration, elapsed_s=self.train_seconds,
+                                  val_psnr=verdict.psnr, blank_psnr=verdict.blank_psnr, margin_db=verdict.margin_db,
+                                  views=list(verdict.views), action=action, reason=verdict.describe(), final=final)
+        self.progress.note(f"collapse: {verdict.describe()}; {action}")
+
+    def _checkpoint(self) -> None:
+        # A non-finite weight never replaces the last good checkpoint.
+        broken = [name for name, value in self.model.state_dict().items()
+                  if value.is_floating_point() and not bool(torch.isfinite(value).all())]
+        if broken:
+            self._diverged(f"weights {', '.join(broken[:3])} are not finite")
+        self.run_folder.save_checkpoint({
+            "iteration": self.iteration, "train_seconds": self.train_seconds, "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(), "batch_rng": self.batch_generator.get_state(),
+            "sample_rng": self.sample_generator.get_state(), "config": self.config.to_dict(),
+            "restart": self.restart, **({"grad_scaler": self.scaler.state_dict()} if self.scaler.is_enabled() else {}),
+        })
+        self.run_folder.log_event("checkpoint", iteration=self.iteration, elapsed_s=self.train_seconds,
+                                  path=str(self.run_folder.checkpoint_path))
+
+    def _diverged(self, what: str) -> None:
+        run = self.run_folder
+        kept = (f"the last good checkpoint is kept at {run.checkpoint_path}" if run.checkpoint_path.exists()
+                else "no checkpoint had been written yet")
+        message = (f"training diverged at iteration {self.iteration} ({what}); {kept}; "
+                   f"try a lower learning_rate (--set learning_rate=...)")
+        run.log_event("error", iteration=self.iteration, message=message)
+        raise NerfError(message)
+
+
+def _occupancy_prior(dataset: Path, config: TrainConfig) -> OccupancyPrior | None:
+    """The dataset's occupancy prior of the kind ``config`` asks for (grid models only)."""
+    if not model_class(config.model).uses_occupancy_prior or config.occupancy_prior == "none":
+        return None
+    if config.occupancy_prior not in PRIOR_KINDS:
+        raise NerfError(f"occupancy_prior {config.occupancy_prior!r}: choose none, {', '.join(PRIOR_KINDS)}")
+    prior = load_occupancy_prior(dataset, config.occupancy_prior)
+    if prior is None:
+        raise NerfError(f"{dataset}: occupancy_prior={config.occupancy_prior} asked for, but the dataset has no "
+                        f"occupancy prior (scene_profile.json names none); use occupancy_prior=none")
+    return prior
+
+
+def _new_model(config: TrainConfig, ray_bounds: RayBounds, prior: OccupancyPrior | None, seed: int, attempt: int,
+               device: torch.device) -> Model:
+    """A freshly initialised model; each restart after a collapse draws another initialisation."""
+    torch.manual_seed(seed + 1000 * attempt)
+    return build_model(config, ray_bounds.box, prior).to(device)
+
+
+@dataclass(frozen=True)
+class _ViewScore:
+    """One validation: the model's PSNR on a view and the blank white image's on the same view."""
+
+    iteration: int
+    psnr: float
+    blank_psnr: float
+
+
+def _validate(
+    model: Model, val_split: DatasetSplit, ray_bounds: RayBounds, run: RunFolder, iteration: int,
+    train_seconds: float, validate_every: int,
+) -> _ViewScore:
+    """Render one validation view (cycling through them) and log its PSNR next to the blank
+    image's; the render becomes RUN/preview.png for anyone watching."""
+    view = (iteration // max(1, validate_every)) % len(val_split)
+    image = render_image(model, val_split.intrinsics, val_split.poses[view], ray_bounds)
+    target = val_split.rgb_on_white(view).numpy()
+    score = _ViewScore(iteration, psnr(image.rgb, target), blank_psnr(target))
+    write_png(run.path / "preview.png", image.rgb)
+    run.log_event("val", iteration=iteration, psnr=score.psnr, blank_psnr=score.blank_psnr, view=view,
+                  elapsed_s=train_seconds)
+    return score
