@@ -104,6 +104,9 @@ def test_hash_model_meets_the_model_contract():
     assert groups["networks"].learning_rate == "network_learning_rate"
     every = {id(p) for group in groups.values() for p in group.parameters}
     assert every == {id(p) for p in model.parameters()}  # every parameter in exactly one group
+    # A checkpoint taken before the first occupancy update holds only finite numbers (the
+    # trainer refuses to save anything else).
+    assert all(torch.isfinite(value).all() for value in model.state_dict().values() if value.is_floating_point())
     # The occupancy grid follows the field's cells: cubic cells over the flat box.
     assert model.occupancy.cells == (43, 64, 21)
     model.update_occupancy()
@@ -161,3 +164,20 @@ def test_hash_preset_trains_through_the_unchanged_trainer(tiny_demo_dataset, tmp
     assert metrics["psnr"] >= HASH_PSNR_FLOOR_DB
     assert metrics["psnr"] >= blank + 3.0
     assert json.loads((run / "config.json").read_text())["config"]["model"] == "hash"
+
+
+def test_occupancy_estimates_are_reproducible_on_resume():
+    """The estimate's random points come from the field's own counter, not the global
+    generator (which checkpoints do not hold): a field restored from a state draws the same."""
+    torch.manual_seed(6)
+    config = HashFieldConfig(log2_table_size=12, max_resolution=64, occupancy_resolution=16)
+    field = HashField(config, BOX)
+    field.occupancy_estimate()
+    state = {key: value.clone() for key, value in field.state_dict().items()}
+    before = torch.get_rng_state()
+    expected = field.occupancy_estimate()[0].clone()
+    assert torch.equal(before, torch.get_rng_state())
+    restored = HashField(config, BOX)
+    restored.load_state_dict(state)
+    torch.manual_seed(123)  # whatever the global generator holds
+    assert torch.equal(restored.occupancy_estimate()[0], expected)

@@ -75,7 +75,11 @@ class HashField(MarchableField):
             nn.Linear(config.hidden_width, 3),
         )
         cells = self.occupancy_cells()
-        self.register_buffer("cell_density", torch.full(cells, float("inf")))  # unknown: occupied
+        # The decayed maximum of the estimates; until the first, the occupancy grid marks all occupied.
+        self.register_buffer("cell_density", torch.zeros(cells))
+        # Counts the estimates: each draws its points from a generator seeded with it, so a resumed
+        # run draws what an uninterrupted one would (the global generator is not checkpointed).
+        self.register_buffer("estimates", torch.zeros((), dtype=torch.long))
 
     def _features(self, x: Tensor) -> Tensor:
         unit = (self.normalise(x) + 1.0) * 0.5
@@ -109,9 +113,10 @@ class HashField(MarchableField):
         cells = torch.tensor(self.cell_density.shape, device=self.box_min.device)
         index = torch.stack(torch.meshgrid(*(torch.arange(int(n), device=cells.device) for n in cells),
                                            indexing="ij"), dim=-1).view(-1, 3)
-        unit = (index + torch.rand(index.shape, device=cells.device)) / cells
+        generator = torch.Generator(device=cells.device).manual_seed(int(self.estimates))
+        self.estimates += 1
+        unit = (index + torch.rand(index.shape, device=cells.device, generator=generator)) / cells
         points = self.box_min + unit * (self.box_max - self.box_min)
         sampled = torch.cat([self.density(chunk) for chunk in points.split(65536)]).view(self.cell_density.shape)
-        previous = torch.nan_to_num(self.cell_density, posinf=0.0)
-        self.cell_density.copy_(torch.maximum(previous * self.config.occupancy_decay, sampled))
+        self.cell_density.copy_(torch.maximum(self.cell_density * self.config.occupancy_decay, sampled))
         return self.cell_density, float(sampled.mean())
