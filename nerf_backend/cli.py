@@ -1,4 +1,4 @@
-"""``python -m nerf_backend {train,render,eval,compare,report,bench,bench-step}``."""
+"""``python -m nerf_backend {train,render,eval,compare,mesh,report,bench,bench-step}``."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from .core.errors import NerfError
 from .data.run_folder import RunFolder
 from .evaluation.evaluate import compare_images, evaluate_renders, evaluate_run
 from .evaluation.inference import render_cameras, render_split
+from .evaluation.mesh import mesh_run
 from .evaluation.report import write_report
 from .metrics.registry import summary_line
 from .models.base import Model
@@ -136,6 +137,17 @@ def build_parser() -> argparse.ArgumentParser:
         command.add_argument("--lpips-linear", type=Path, default=None,
                              help="LPIPS v0.1 linear-layer weights (default: the ones in the lpips package)")
 
+    mesh = sub.add_parser("mesh", help="extract the trained density's surface as a mesh (marching cubes), "
+                                       "coloured, in Blender's world coordinates")
+    mesh.add_argument("run", type=Path)
+    mesh.add_argument("--out", type=Path, required=True, help="MESH.ply or MESH.obj (a record MESH.ply.json beside it)")
+    mesh.add_argument("--resolution", type=_positive_int, default=256,
+                      help="grid vertices along the scene box's longest side (default: 256)")
+    mesh.add_argument("--threshold", type=_positive_float, default=None,
+                      help="surface density (default: ln 2 / the render step, where one step is half opaque)")
+    mesh.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
+    mesh.add_argument("--overwrite", action="store_true", help="replace an existing mesh file")
+
     report = sub.add_parser("report", help="write an HTML page comparing renders with Cycles ground truth")
     report.add_argument("results", type=Path, nargs="+",
                         help="run folders, or renders folders scored by eval --dataset D --renders DIR")
@@ -196,6 +208,13 @@ def _run(args: argparse.Namespace) -> int:
               f"plain PyTorch {per['plain']:.2f} s/iteration (ratio {report['ratio_project_to_plain']:.2f}; "
               f"{report['parameters']['project']:,} vs {report['parameters']['plain']:,} parameters); "
               f"written {args.out / 'step_cost.json'}")
+        return 0
+
+    if args.command == "mesh":
+        record = mesh_run(RunFolder(args.run), args.out, resolve_device(args.device), args.resolution,
+                          args.threshold, overwrite=args.overwrite)
+        print(f"mesh: {record['vertices']} vertices, {record['faces']} faces at density {record['threshold']:.4g} "
+              f"(iteration {record['iteration']}); written {args.out} and {args.out}.json")
         return 0
 
     if args.command == "report":

@@ -17,7 +17,7 @@ import termios
 import pytest
 
 from conftest import REPO_ROOT, run_python
-from nerf_backend import progress as progress_module
+from nerf_backend.core import progress as progress_module
 from nerf_backend.core.progress import Progress
 
 BUDGET_S = "4"

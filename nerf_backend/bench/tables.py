@@ -91,9 +91,8 @@ def plot_suite(summary: dict, path: Path) -> None:
     """Final test PSNR per scene and variant (bars), the blank image's PSNR per scene (a black
     line across its bars); a collapsed variant's bar is hatched."""
     plt = pyplot()
-    from matplotlib.lines import (
-        Line2D,  # matplotlib is deferred on purpose (core/plotting.py)
-    )
+    # matplotlib is deferred on purpose (core/plotting.py): loaded by pyplot() above.
+    from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
     scenes = summary["scenes"]

@@ -69,6 +69,15 @@ class Model(nn.Module):
     ) -> list[RenderOutput]:
         raise NotImplementedError
 
+    def density_at(self, points: Tensor) -> Tensor:
+        """Density ``[P]`` at world points ``[P, 3]``: the geometry the image is rendered from
+        (meshes are extracted from it)."""
+        raise NotImplementedError
+
+    def colour_at(self, points: Tensor, directions: Tensor) -> Tensor:
+        """Colour ``[P, 3]`` at ``points`` seen along ``directions``."""
+        raise NotImplementedError
+
     def parameter_groups(self) -> list[ParameterGroup]:
         """The optimiser's groups, in a fixed order (checkpoints store the optimiser by it)."""
         return [ParameterGroup("networks", list(self.parameters()), "learning_rate")]

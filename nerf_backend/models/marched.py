@@ -87,6 +87,12 @@ class MarchedModel(Model):
         cell_max, mean_density = self.field.occupancy_estimate()
         self.occupancy.update(cell_max, min(self.density_threshold, mean_density), self.allowed)
 
+    def density_at(self, points: Tensor) -> Tensor:
+        return self.field.density(points)
+
+    def colour_at(self, points: Tensor, directions: Tensor) -> Tensor:
+        return self.field.colour(points, directions)
+
     def parameter_groups(self) -> list[ParameterGroup]:
         encoding = self.field.encoding_parameters()
         ids = {id(p) for p in encoding}

@@ -106,6 +106,17 @@ class NerfModel(Model):
     def build(cls, settings: ModelSettings, box: SceneBounds | None, prior: OccupancyPrior | None) -> "NerfModel":
         return cls(settings)
 
+    @property
+    def image_field(self) -> NerfField:
+        """The field the image comes from: the fine one, where there is one."""
+        return self.fine if self.fine is not None else self.coarse
+
+    def density_at(self, points: Tensor) -> Tensor:
+        return self.image_field.density_features(points)[0]
+
+    def colour_at(self, points: Tensor, directions: Tensor) -> Tensor:
+        return self.image_field(points, directions)[1]
+
     def forward(
         self, origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor,
         background: Tensor | float = 1.0, generator: torch.Generator | None = None,
