@@ -93,7 +93,7 @@ def score_renders(split: DatasetSplit, renders_dir: Path, tools: MetricTools) ->
         **mean_scores(per_view),
         "metrics": [metric.describe() for metric in METRICS],
         "lpips_net": "AlexNet, LPIPS v0.1",
-        "lpips_unavailable": None,
+        "lpips_unavailable": None,  # always present (readers look for it); the reason when LPIPS is missing:
         **unavailable_reasons(tools),
         "depth_mae": depth_mean,
         "depth_mask": DEPTH_MASK,
