@@ -6,6 +6,9 @@ no module of ``nerf_backend`` depends on itself through others, the backend neve
 from __future__ import annotations
 
 import ast
+import re
+import sys
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -147,3 +150,26 @@ def test_backend_imports_are_at_the_top_of_modules():
         if names:
             deferred[_module_name(package, path)] = names
     assert deferred == DEFERRED_IMPORTS
+
+
+# What each third-party module the backend imports is installed as.
+DISTRIBUTIONS = {"PIL": "pillow", "skimage": "scikit-image", "OpenEXR": "OpenEXR"}
+
+
+def _requirement_names(lines: list[str]) -> set[str]:
+    return {re.split(r"[<>=!~\[ ]", line.strip(), maxsplit=1)[0].lower() for line in lines
+            if line.strip() and not line.strip().startswith("#")}
+
+
+def test_the_backend_requirements_cover_its_imports():
+    """The add-on's Set Up Backend installs nerf_backend/requirements.txt into a fresh Python:
+    a module the backend imports but the file lacks would break every command there."""
+    imported = set()
+    for names in _imports(REPO_ROOT / "nerf_backend").values():
+        imported.update(name.split(".")[0] for name in names)
+    third_party = {name for name in imported if name not in sys.stdlib_module_names and name != "nerf_backend"}
+    needed = {DISTRIBUTIONS.get(name, name).lower() for name in third_party}
+    requirements = _requirement_names((REPO_ROOT / "nerf_backend" / "requirements.txt").read_text().splitlines())
+    project = _requirement_names(tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]["dependencies"])
+    assert needed - requirements == set()
+    assert needed - project == set()

@@ -1,5 +1,6 @@
 """Geometry out of a NeRF: marching cubes over analytic densities against their closed-form
-surfaces, the threshold rule, the files, and a trained run meshed through the CLI."""
+surfaces, the threshold rule, the files, a trained run meshed through the CLI, and the
+geometric scores (Chamfer, F-score, normal consistency) against closed forms."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from conftest import run_python
 from nerf_backend.core.errors import NerfError
 from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.evaluation.mesh import default_threshold, extract_mesh, to_blender_world, write_obj, write_ply
+from nerf_backend.metrics.geometry import fibonacci_sphere, sample_surface, surface_distances
 
 BOX = SceneBounds((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
@@ -115,3 +117,37 @@ def test_mesh_writes_refuse_other_suffixes(trained_run, tmp_path):
     result = run_python("-m", "nerf_backend", "mesh", str(trained_run), "--out", str(tmp_path / "m.stl"), check=False)
     assert result.returncode == 2 and "a mesh is written as .ply or .obj" in result.stderr
 
+
+
+def test_geometry_scores_of_two_concentric_spheres_match_the_closed_form():
+    """Radii 1 and 1.05: every point's nearest neighbour on the other sphere is 0.05 away
+    along its radius (plus the sampling's spacing), normals are parallel."""
+    inner, outer = fibonacci_sphere(20000), fibonacci_sphere(20000) * 1.05
+    spacing = math.sqrt(4 * math.pi * 1.05**2 / 20000)  # mean distance between samples
+    scores = surface_distances(inner, inner, outer, outer / 1.05, tau=0.06)
+    for key in ("accuracy", "completeness", "chamfer"):
+        assert 0.05 - 1e-9 <= scores[key] <= math.hypot(0.05, spacing / 2), key
+    assert scores["precision"] == scores["recall"] == scores["f_score"] == 1.0
+    assert scores["normal_consistency"] > 0.999
+    below = surface_distances(inner, inner, outer, outer / 1.05, tau=0.049)
+    assert below["precision"] == below["recall"] == below["f_score"] == 0.0
+
+
+def test_geometry_scores_of_a_mesh_against_itself_and_a_missing_half():
+    # σ = 200·(0.6 − r) meshed at σ = 20: the sphere of radius 0.5.
+    mesh = extract_mesh(lambda x: 200.0 * (0.6 - x.norm(dim=-1)).clamp_min(0), _colour_from_direction, BOX, 48,
+                        threshold=20.0)
+    rng = np.random.default_rng(0)
+    points, normals = sample_surface(mesh.vertices.numpy(), mesh.faces.numpy(), 20000, rng)
+    # Sampled normals follow the faces' winding: outward.
+    assert (np.einsum("ij,ij->i", points, normals) > 0).all()
+    truth = fibonacci_sphere(20000) * 0.5
+    scores = surface_distances(points, normals, truth, truth / 0.5, tau=0.02)  # above the spacing
+    # Both sides are samples: a nearest neighbour is up to half the samples' spacing away even
+    # on the same surface; the facets' own error (sagitta ~ 0.0005) is smaller.
+    spacing = math.sqrt(4 * math.pi * 0.5**2 / 20000)
+    assert scores["chamfer"] < 0.5 * spacing + 0.001
+    assert scores["f_score"] > 0.95 and scores["normal_consistency"] > 0.99
+    upper = points[:, 2] > 0  # half the surface missing: precision stays, recall halves
+    half = surface_distances(points[upper], normals[upper], truth, truth / 0.5, tau=0.02)
+    assert half["precision"] > 0.95 and 0.45 < half["recall"] < 0.6
