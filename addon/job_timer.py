@@ -20,20 +20,20 @@ _setup: BackendSetup | None = None
 _preview_stamp: dict[str, float] = {}  # preview file → the mtime last loaded
 
 
-def training_job(context) -> TrainingJob:
-    run = run_dir(context)
-    job = _jobs.get(str(run))
-    if not isinstance(job, TrainingJob):
-        job = _jobs[str(run)] = TrainingJob(run)
+def _job(folder, kind):
+    """The job of ``kind`` following ``folder``, made on first use."""
+    job = _jobs.get(str(folder))
+    if not isinstance(job, kind):
+        job = _jobs[str(folder)] = kind(folder)
     return job
+
+
+def training_job(context) -> TrainingJob:
+    return _job(run_dir(context), TrainingJob)
 
 
 def dataset_job(context) -> DatasetJob:
-    out = dataset_dir(context)
-    job = _jobs.get(str(out))
-    if not isinstance(job, DatasetJob):
-        job = _jobs[str(out)] = DatasetJob(out)
-    return job
+    return _job(dataset_dir(context), DatasetJob)
 
 
 def backend_setup() -> BackendSetup | None:

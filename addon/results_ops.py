@@ -138,17 +138,6 @@ class NERF_OT_render_active_camera(bpy.types.Operator):
         return {"FINISHED"}
 
 
-def comparison_rows(result: dict) -> list[dict]:
-    """One row per metric the backend lists in ``compare.json``, formatted as it says."""
-    rows = []
-    for metric in result["metrics"]:
-        value = result.get(metric["key"])
-        text = ("unavailable" if value is None
-                else f"{value:.{metric['decimals']}f}" + (f" {metric['unit']}" if metric["unit"] else ""))
-        rows.append({"key": metric["key"], "label": metric["label"], "value": value, "text": text})
-    return rows
-
-
 class NERF_OT_compare(bpy.types.Operator):
     """Render the active camera with Cycles and with the NeRF; show both and their difference, with metrics"""
 
@@ -163,7 +152,7 @@ class NERF_OT_compare(bpy.types.Operator):
         run_backend(context, "compare", "--reference", str(cycles), "--render", str(nerf), "--out", str(nerf.parent))
         result = json.loads((nerf.parent / "compare.json").read_text())
         s = settings(context)
-        rows = comparison_rows(result)
+        rows = result["metrics"]  # each metric as the backend formats it: key, label, value, text
         s.compare_metrics = json.dumps(rows)
         for name, path in (("Cycles active camera", cycles), ("NeRF active camera", nerf),
                            ("NeRF difference", nerf.parent / "difference.png")):

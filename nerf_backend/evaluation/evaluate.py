@@ -156,9 +156,13 @@ def compare_images(reference: Path, render: Path, out_dir: Path, device: torch.d
     if a.shape != b.shape:
         raise NerfError(f"{render}: size {a.shape[1]}×{a.shape[0]} differs from {reference}'s {b.shape[1]}×{b.shape[0]}")
     tools = metric_tools(lpips_weights, lpips_linear, device)
+    scores = score_image(a, b, tools)
     result = {
-        "reference": str(reference), "render": str(render), **score_image(a, b, tools),
-        "metrics": [metric.describe() for metric in METRICS], "lpips_unavailable": None, **unavailable_reasons(tools),
+        "reference": str(reference), "render": str(render), **scores,
+        # Each metric with its value as shown (the add-on draws these rows as they are).
+        "metrics": [{**metric.describe(), "value": scores[metric.key], "text": metric.format(scores[metric.key])}
+                    for metric in METRICS],
+        "lpips_unavailable": None, **unavailable_reasons(tools),
         "difference": str(out_dir / "difference.png"),
         "difference_scale": f"mean |render - reference| per pixel, 0 to {ERROR_SCALE} (inferno)",
         "side_by_side": str(out_dir / "side_by_side.png"),
