@@ -97,6 +97,8 @@ class MarchedModel(Model):
         encoding = self.field.encoding_parameters()
         ids = {id(p) for p in encoding}
         networks = [p for p in self.parameters() if id(p) not in ids]
+        if not encoding:  # a field of networks only trains them at the model's main rate
+            return [ParameterGroup("networks", networks, "learning_rate")]
         return [ParameterGroup("encoding", encoding, "learning_rate"),
                 ParameterGroup("networks", networks, "network_learning_rate")]
 

@@ -157,13 +157,9 @@ def sample_ray_batch(
 
 
 def _optimizer(model: Model, config: TrainConfig) -> torch.optim.Optimizer:
-    """Adam over the model's own parameter groups, each at the learning rate it names
-    (``initial_lr`` is what decay scales). A model with only networks trains them at
-    ``learning_rate``; one with an encoding trains that at ``learning_rate`` and its networks
-    at ``network_learning_rate``."""
+    """Adam over the model's own parameter groups, each at the learning-rate setting it names
+    (``initial_lr`` is what decay scales)."""
     groups = [group for group in model.parameter_groups() if group.parameters]
-    if len(groups) == 1:
-        groups = [replace(groups[0], learning_rate="learning_rate")]
     rates = [getattr(config, group.learning_rate) for group in groups]
     return torch.optim.Adam([{"params": group.parameters, "initial_lr": rate, "lr": rate}
                              for group, rate in zip(groups, rates)], betas=config.adam_betas, eps=config.adam_eps)
