@@ -3,8 +3,8 @@ compare with Cycles.
 
 Blender-facing code (``properties``, ``operators`` with the buttons in ``dataset_ops``,
 ``training_ops`` and ``results_ops``, ``job_timer``, ``paths``, ``images``, ``panel``) only
-draws and calls; the job handling (``jobs``, ``backend_setup``) and the camera maths
-(``camera_mapping``) are plain Python that tests drive without Blender. The add-on never
+draws and calls; the job handling (``jobs``, ``backend_setup``) is plain Python that tests
+drive without Blender, and the camera maths is ``datasets_gen``'s (``camera_path``). The add-on never
 imports torch: training runs in the backend's own Python as a separate process.
 """
 

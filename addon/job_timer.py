@@ -10,9 +10,9 @@ import bpy
 from bpy.app.handlers import persistent
 
 from .backend_setup import BackendSetup
-from .images import PREVIEW_IMAGE, show_image
-from .jobs import DatasetJob, JobStatus, TrainingJob
-from .paths import dataset_dir, run_dir
+from .images import PREVIEW_IMAGE, show_animation, show_image
+from .jobs import AnimationJob, DatasetJob, JobStatus, TrainingJob
+from .paths import animation_dir, dataset_dir, run_dir
 
 _jobs: dict[str, object] = {}  # folder → job (keeps the Popen that started it)
 status: dict[str, JobStatus] = {}  # folder → last polled status, drawn by the panel
@@ -36,6 +36,11 @@ def dataset_job(context) -> DatasetJob:
     return _job(dataset_dir(context), DatasetJob)
 
 
+def animation_job(context) -> AnimationJob:
+    """The job rendering the scene camera's animation with the run (``RUN/animation/CAMERA``)."""
+    return _job(animation_dir(context), AnimationJob)
+
+
 def backend_setup() -> BackendSetup | None:
     """The last Set Up Backend's job, or None."""
     return _setup
@@ -51,10 +56,14 @@ def poll_jobs() -> bool:
     """Refresh every known job's status; True while any runs."""
     running = False
     for folder, job in list(_jobs.items()):
+        previous = status.get(folder)
         status[folder] = job.poll()
         running = running or status[folder].state == "running"
         if isinstance(job, TrainingJob):
             _refresh_preview(job.preview_path)
+        if isinstance(job, AnimationJob) and status[folder].state == "done" and \
+                previous is not None and previous.state == "running":
+            _show_animation(job, status[folder])
     if _setup is not None:
         status["backend-setup"] = _setup.poll()
         running = running or status["backend-setup"].state == "running"
@@ -71,6 +80,15 @@ def _refresh_preview(path: Path) -> None:
     if _preview_stamp.get(str(path)) != stamp or PREVIEW_IMAGE not in bpy.data.images:
         _preview_stamp[str(path)] = stamp
         show_image(PREVIEW_IMAGE, path)
+
+
+def _show_animation(job: AnimationJob, state: JobStatus) -> None:
+    """A finished animation is loaded where the user looks, once (not again on every poll)."""
+    context = bpy.context
+    try:
+        state.extra["shown"] = show_animation(context, state.extra["record"], context.scene.nerf.animation_sequencer)
+    except (RuntimeError, OSError, KeyError) as exc:  # a video Blender cannot open: said in the panel
+        state.warning = f"The video could not be loaded: {exc}"
 
 
 def _tick():
@@ -101,7 +119,7 @@ def _reattach_on_load(_file) -> None:
     context = bpy.context
     if getattr(context, "scene", None) is None or not hasattr(context.scene, "nerf"):
         return
-    for job in (dataset_job(context), training_job(context)):
+    for job in (dataset_job(context), training_job(context), animation_job(context)):
         status[str(job.folder)] = job.poll()
     if any(s.state == "running" for s in status.values()):
         ensure_timer()

@@ -273,6 +273,83 @@ class DatasetJob(_Job):
         return JobStatus("running", fraction, f"{written} of {expected or '?'} views rendered")
 
 
+class AnimationJob(_Job):
+    """A camera animation rendered by the NeRF into ``folder`` (``RUN/animation/CAMERA``), in
+    up to two stages, each a process: ``"cycles"``, Cycles' frames by a background Blender
+    (``datasets_gen --camera-path ... --cycles``), then ``"nerf"``, the backend's ``render
+    --camera-path``. ``poll`` starts the next stage when one has finished; progress is the
+    frames on disk, so a reopened .blend follows a job it did not start."""
+
+    STAGE_LABELS = {"cycles": "Cycles", "nerf": "NeRF"}
+
+    def __init__(self, folder: Path) -> None:
+        super().__init__(folder)
+
+    def start(self, path_json: Path, frames: int, stages: list[tuple[str, list[str]]],
+              env: dict[str, str] | None = None, cycles: bool = False) -> None:
+        """Run the ``(kind, command)`` stages one after the other; ``path_json`` is the camera
+        path of ``frames`` frames that the "nerf" stage renders (``cycles``: beside Cycles')."""
+        self._launch(stages[0][1], env=env)
+        self._update(stages=stages, stage=0, path=str(path_json), frames=frames, cycles=cycles, env=env or {},
+                     cancelled=False)
+
+    def _update(self, **fields) -> None:
+        data = self.record() or {}
+        data.update(fields)
+        self.record_path.write_text(json.dumps(data))
+
+    def cancel(self) -> None:
+        self._update(cancelled=True)
+        super().cancel()
+
+    def _frames_on_disk(self, kind: str, record: dict) -> int:
+        folder = Path(record["path"]).parent / "cycles" if kind == "cycles" else self.folder / "frames"
+        return len(list(folder.glob("*.png"))) if folder.is_dir() else 0
+
+    def _launch_next(self, record: dict) -> None:
+        stage = record["stage"] + 1
+        kept = {key: record[key] for key in ("stages", "path", "frames", "cycles", "env")}
+        self._launch(record["stages"][stage][1], env=record.get("env") or None)
+        self._update(**kept, stage=stage, cancelled=False)
+
+    def poll(self) -> JobStatus:
+        running = self.is_running()
+        record = self.record()
+        if not record or "stages" not in record:
+            return JobStatus("idle")
+        stage, stages, total = record["stage"], record["stages"], record["frames"]
+        kind, last = stages[stage][0], stage == len(stages) - 1
+        done = self._frames_on_disk(kind, record)
+        if not running and not last and self.returncode() in (0, None) and not record.get("cancelled") \
+                and done >= total:
+            self._launch_next(record)
+            return JobStatus("running", (stage + 1) / len(stages), f"NeRF: 0 of {total} frames")
+        result = self._result(record) if last else None
+        finished = result is not None and result.get("video") is not None and (
+            not record.get("cycles") or result.get("side_by_side_video") is not None)
+        if record.get("cancelled") and not running and not finished:
+            return JobStatus("cancelled", 0.0, "cancelled; rendering again keeps the frames already made")
+        failure = self._ended_badly(finished, running)
+        if failure is not None:
+            return failure
+        if finished and not running:
+            mean = result.get("mean") or {}
+            detail = f"{total} frames" + (f", PSNR {mean['psnr']:.2f} dB against Cycles" if mean.get("psnr") else "")
+            return JobStatus("done", 1.0, detail, extra={"record": result})
+        fraction = (stage + min(1.0, done / total if total else 0.0)) / len(stages)
+        return JobStatus("running", fraction, f"{self.STAGE_LABELS[kind]}: {done} of {total} frames")
+
+    def _result(self, record: dict) -> dict | None:
+        """The backend's animation.json, if written by this job's render (not an earlier one)."""
+        path = self.folder / "animation.json"
+        try:
+            if path.stat().st_mtime < record.get("started", 0.0):
+                return None
+            return json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError):
+            return None
+
+
 def python_in_venv(venv: Path) -> Path:
     return Path(venv) / ("Scripts/python.exe" if os.name == "nt" else "bin/python")
 

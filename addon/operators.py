@@ -6,15 +6,16 @@ process.
 
 By concern: ``dataset_ops`` (Generate Dataset), ``training_ops`` (Train, Resume, Cancel, Set
 Up Backend), ``results_ops`` (Render Test Views, Render Active Camera, Compare with Cycles,
-Open Report); ``paths`` and ``images`` are what they share."""
+Open Report), ``animation_ops`` (Render Camera Animation, its Cancel, Import NeRF Mesh); ``paths``
+and ``images`` are what they share."""
 
 from __future__ import annotations
 
 import bpy
 
-from . import dataset_ops, job_timer, results_ops, training_ops
+from . import animation_ops, dataset_ops, job_timer, results_ops, training_ops
 
-CLASSES = (*dataset_ops.CLASSES, *training_ops.CLASSES, *results_ops.CLASSES)
+CLASSES = (*dataset_ops.CLASSES, *training_ops.CLASSES, *results_ops.CLASSES, *animation_ops.CLASSES)
 
 
 def register() -> None:

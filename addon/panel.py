@@ -13,7 +13,7 @@ import bpy
 
 from .images import COMPARISON_IMAGE, PREVIEW_IMAGE
 from .job_timer import status
-from .paths import backend_python, dataset_dir, run_dir
+from .paths import animation_dir, backend_python, dataset_dir, run_dir
 from .ui_text import draw_text as _text
 from .ui_text import first_fitting
 
@@ -146,6 +146,28 @@ class NERF_PT_results(_NerfPanel, bpy.types.Panel):
         layout.operator("nerf.open_report", icon="URL")
 
 
+class NERF_PT_results_animation(_NerfPanel, bpy.types.Panel):
+    """The NeRF along the scene camera's animation, and its surface as a mesh."""
+
+    bl_label = "Animation and Mesh"
+    bl_parent_id = "NERF_PT_results"
+
+    def draw(self, context):
+        s, layout = context.scene.nerf, _split(self.layout)
+        layout.prop(s, "animation_step")
+        layout.prop(s, "animation_cycles")
+        layout.prop(s, "animation_sequencer")
+        state = status.get(str(animation_dir(context)))
+        if state is not None and state.state == "running":
+            layout.operator("nerf.cancel_animation", icon="CANCEL")
+        else:
+            layout.operator("nerf.render_animation", icon="RENDER_ANIMATION")
+        _draw_status(layout, context, state, "No animation rendered")
+        layout.separator()
+        layout.prop(s, "mesh_resolution")
+        layout.operator("nerf.import_mesh", icon="MESH_DATA")
+
+
 class NERF_PT_results_comparison(_NerfPanel, bpy.types.Panel):
     """The last Compare with Cycles: its numbers, and its image in the Image Editor."""
 
@@ -165,7 +187,7 @@ class NERF_PT_results_comparison(_NerfPanel, bpy.types.Panel):
 
 
 CLASSES = (NERF_PT_dataset, NERF_PT_dataset_rendering, NERF_PT_training, NERF_PT_training_preview,
-           NERF_PT_results, NERF_PT_results_comparison)
+           NERF_PT_results, NERF_PT_results_comparison, NERF_PT_results_animation)
 
 
 def register() -> None:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import bpy
 
+from . import sources
 from .jobs import python_in_venv
 
 
@@ -20,6 +21,14 @@ def dataset_dir(context) -> Path:
 
 def run_dir(context) -> Path:
     return Path(bpy.path.abspath(settings(context).run_dir)).resolve()
+
+
+def animation_dir(context) -> Path:
+    """Where the run's renders of the scene camera's animation go: ``RUN/animation/CAMERA``
+    (the camera path's own folder name, so the CLI and the add-on agree)."""
+    camera = context.scene.camera
+    name = sources.datasets_gen("camera_path").safe_name(camera.name if camera is not None else "camera")
+    return run_dir(context) / "animation" / name
 
 
 def managed_venv() -> Path:

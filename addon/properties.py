@@ -46,6 +46,15 @@ class NerfSettings(bpy.types.PropertyGroup):
     # Results of the last comparison (shown in the panel).
     # The last comparison's metrics as the backend lists them (compare.json's "metrics" table):
     # JSON rows {"key", "label", "value", "text"}; "" before any comparison.
+    animation_step: IntProperty(name="Frame Step", default=1, min=1, max=1000,
+                                description="Render every Nth frame of the scene's frame range")
+    animation_cycles: BoolProperty(name="Beside Cycles", default=True,
+                                   description="Also render the frames with Cycles (the dataset's settings) and make a "
+                                               "side-by-side video with PSNR and SSIM per frame")
+    animation_sequencer: BoolProperty(name="Add to Sequencer", default=False,
+                                      description="Add the finished video to the Video Sequencer as a movie strip")
+    mesh_resolution: IntProperty(name="Mesh Resolution", default=256, min=16, max=1024,
+                                 description="Grid vertices along the scene box's longest side for the NeRF mesh")
     compare_metrics: StringProperty(name="Metrics", default="", description="The metrics of the last comparison with Cycles")
 
 

@@ -14,7 +14,6 @@ from pathlib import Path
 import bpy
 
 from . import sources
-from .camera_mapping import camera_file
 from .images import COMPARISON_IMAGE, show_image, show_in_image_editor
 from .paths import backend_python, dataset_dir, run_dir, settings
 
@@ -81,7 +80,10 @@ def render_active_camera_nerf(context) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     cameras = out / "camera.json"
     matrix = [list(row) for row in context.scene.camera.matrix_world]
-    cameras.write_text(json.dumps(camera_file(matrix, world_to_nerf, intrinsics, "nerf")))
+    pose = sources.datasets_gen("camera_path").camera_to_nerf(matrix, world_to_nerf)
+    keys = ("w", "h", "fl_x", "fl_y", "cx", "cy", "camera_angle_x")
+    cameras.write_text(json.dumps({**{k: intrinsics[k] for k in keys},
+                                   "frames": [{"file_path": "./nerf", "transform_matrix": pose}]}))
     run_backend(context, "render", str(run_dir(context)), "--cameras", str(cameras), "--out", str(out))
     return out / "nerf.png"
 

@@ -176,10 +176,16 @@ def read_scene_camera(scene: "bpy.types.Scene") -> CameraSettings:
     camera = scene.camera
     if camera is None or camera.type != "CAMERA":
         raise DatasetGenError(f"--use-scene-camera: scene {scene.name!r} has no active camera")
+    return camera_settings(scene, camera, "--use-scene-camera")
+
+
+def camera_settings(scene: "bpy.types.Scene", camera: "bpy.types.Object", asked_by: str) -> CameraSettings:
+    """A perspective camera's lens, sensor and shift as they are now (at the current frame) and
+    the scene's resolution settings; ``asked_by`` names the flag in the error for other cameras."""
     data = camera.data
     if data.type != "PERSP":
         raise DatasetGenError(
-            f"--use-scene-camera: camera {camera.name!r} is {data.type.lower()}; only perspective cameras "
+            f"{asked_by}: camera {camera.name!r} is {data.type.lower()}; only perspective cameras "
             "fit the nerf_synthetic layout"
         )
     render = scene.render

@@ -3,6 +3,7 @@
     python -m datasets_gen (SCENE.blend | --demo | --builtin NAME) --out DIR [options]
     python -m datasets_gen --suite DIR [--suite-scene SCENE.blend ...] [options]
     python -m datasets_gen --merge DIR
+    python -m datasets_gen SCENE.blend --out DATASET --camera-path CAMERA [--frames S:E[:STEP]] [--cycles]
     blender -b [SCENE.blend] --python datasets_gen/generate.py -- [SCENE.blend | --demo] --out DIR [options]
 
 `--demo` is `--builtin demo` and `--demo --demo-variant diffuse` is `--builtin demo_diffuse`.
@@ -66,6 +67,16 @@ def build_parser() -> argparse.ArgumentParser:
                         help="join the shard JSON files in DIR into the dataset's JSON (no SCENE, no --out)")
     groups[_LONG_RENDERS_GROUP].add_argument("--no-progress", action="store_true",
                                              help="do not show progress on stderr")
+    path = parser.add_argument_group("camera animation (for python -m nerf_backend render RUN --camera-path)")
+    path.add_argument("--camera-path", metavar="CAMERA",
+                      help="write CAMERA's animation as a camera path in the NeRF frame of the dataset in --out "
+                      "(which must exist) into DATASET/camera_paths/CAMERA/camera_path.json; frames have the scene's render "
+                      "size, scaled by --resolution-percentage P when given")
+    path.add_argument("--frames", metavar="S:E[:STEP]",
+                      help="with --camera-path: the frames, both ends included (default: the scene's frame range)")
+    path.add_argument("--cycles", action="store_true",
+                      help="with --camera-path: also render those frames with Cycles, with the dataset's settings "
+                      "(frames already rendered are kept)")
     return parser
 
 
@@ -133,6 +144,10 @@ def main(argv: Optional[Sequence[str]] = None, blender_file: str = "") -> int:
         return _guarded(lambda: _merge(args.merge), args.merge)
     if args.suite is not None:
         return _suite(args, parser)
+    if args.camera_path is None and (args.frames is not None or args.cycles):
+        parser.error(f"argument {'--frames' if args.frames is not None else '--cycles'}: needs --camera-path CAMERA")
+    if args.camera_path is not None:
+        return _camera_path(args, parser, blender_file)
     if args.suite_scene:
         parser.error("--suite-scene needs --suite DIR")
     options = options_from_args(args, parser, blender_file)
@@ -166,6 +181,27 @@ def _suite(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     failed = _guarded(lambda: statuses.append(run_suite(plan, progress=not args.no_progress)), args.suite,
                       quiet=True, interrupted=f"run the same command again to resume the suite in {args.suite}")
     return failed or statuses[0]
+
+
+def _camera_path(args: argparse.Namespace, parser: argparse.ArgumentParser, blender_file: str) -> int:
+    """--camera-path CAMERA: the animation of a camera into the dataset in --out."""
+    from .camera_path import parse_frames
+    from .camera_path_export import export_from_options
+
+    options = options_from_args(args, parser, blender_file)
+    if args.frames is not None:
+        try:
+            parse_frames(args.frames)
+        except DatasetGenError as error:
+            parser.error(str(error))
+    written: list[str] = []
+    status = _guarded(lambda: written.append(export_from_options(
+        options, args.camera_path, args.frames, args.cycles, progress=not args.no_progress,
+        resolution_percentage=args.resolution_percentage)), options.out_dir,
+        quiet=True, interrupted="run the same command again to keep the Cycles frames rendered and render the rest")
+    if not status:
+        print(f"{PROG}: wrote {written[0]}", file=sys.stderr)
+    return status
 
 
 def _merge(out_dir: str) -> None:

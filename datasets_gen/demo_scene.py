@@ -33,6 +33,9 @@ from .blender_compat import diffuse_bsdf, node_tree_of, principled_bsdf, set_nod
 
 DEMO_SCENE_NAME = "NeRF demo"
 PEDESTAL_TOP_Z = -0.5
+TURNTABLE_FRAMES = 48
+TURNTABLE_RADIUS = 3.0
+TURNTABLE_HEIGHT = 1.3
 
 
 def build_demo_scene(name: str = DEMO_SCENE_NAME, variant: str = "standard") -> "bpy.types.Scene":
@@ -81,9 +84,43 @@ def build_demo_scene(name: str = DEMO_SCENE_NAME, variant: str = "standard") -> 
     assign(ring, make_material("ring", (0.10, 0.60, 0.25), roughness=0.3, diffuse=diffuse))
 
     add_sun(scene, name, energy=3.0, rotation_x_deg=40.0, rotation_z_deg=30.0)
+    add_turntable_camera(scene, (0.0, 0.0, PEDESTAL_TOP_Z + 0.55))
 
     scene.view_layers[0].update()
     return scene
+
+
+def add_turntable_camera(scene: "bpy.types.Scene", target: Sequence[float]) -> "bpy.types.Object":
+    """The scene's camera (`turntable camera`), animated for a camera-path demo: one turn around
+    ``target`` over TURNTABLE_FRAMES frames at 24 fps, its lens zooming from 35 to 50 mm and
+    back, rendered at 800×600. It rides a rotating empty and tracks the target, so its pose
+    comes from a parent and a constraint, as users' camera rigs do. Every frame is a key, so the
+    pose at each frame is known exactly whatever the keys' interpolation."""
+    pivot = add_object(scene, "turntable pivot", None, target)
+    aim = add_object(scene, "turntable target", None, target)
+    data = bpy.data.cameras.new("turntable camera")
+    data.sensor_width = 36.0
+    camera = bpy.data.objects.new("turntable camera", data)
+    camera.parent = pivot
+    camera.location = (TURNTABLE_RADIUS, 0.0, TURNTABLE_HEIGHT)
+    scene.collection.objects.link(camera)
+    track = camera.constraints.new("TRACK_TO")
+    track.target = aim
+    track.track_axis = "TRACK_NEGATIVE_Z"
+    track.up_axis = "UP_Y"
+    for index in range(TURNTABLE_FRAMES):
+        frame = 1 + index
+        turn = 2.0 * math.pi * index / TURNTABLE_FRAMES
+        pivot.rotation_euler = (0.0, 0.0, turn)
+        pivot.keyframe_insert("rotation_euler", index=2, frame=frame)
+        data.lens = 35.0 + 15.0 * (0.5 - 0.5 * math.cos(turn))
+        data.keyframe_insert("lens", frame=frame)
+    scene.camera = camera
+    scene.frame_start, scene.frame_end = 1, TURNTABLE_FRAMES
+    scene.frame_set(1)
+    scene.render.fps, scene.render.fps_base = 24, 1.0
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 800, 600, 100
+    return camera
 
 
 def new_protocol_scene(name: str) -> "bpy.types.Scene":

@@ -15,7 +15,7 @@ import os
 import sys
 import time
 from dataclasses import dataclass
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 from . import trajectories
 from .dataset_json import frame_entry, scene_profile, transforms_document
@@ -36,6 +36,7 @@ from .intrinsics import CameraSettings, Intrinsics, ray_length_factors
 from .materials import classify_material
 from .options import SPLITS, DatasetGenError, GeneratorOptions, options_from_keywords, validate_camera
 from .output_dir import (
+    GEOMETRY_NAME,
     PRIOR_NAME,
     PROFILE_NAME,
     check_output_dir,
@@ -96,7 +97,17 @@ def run(options: GeneratorOptions, progress: bool = True, scene: Any = None) -> 
     if not options.check_only:
         check_output_dir(out_dir, options)
 
-    # bpy-facing modules are imported only now, so bad input is reported without waiting for Blender.
+    journal = blender_journal()
+    try:
+        return _run_in_blender(options, out_dir, progress, scene, journal, started)
+    finally:
+        journal.restore()
+
+
+def blender_journal() -> Any:
+    """A new SettingsJournal; DatasetGenError when this Python has no Blender module.
+
+    bpy-facing modules are imported only now, so bad input is reported without waiting for Blender."""
     try:
         from .scene_state import SettingsJournal
     except ModuleNotFoundError as error:
@@ -106,11 +117,7 @@ def run(options: GeneratorOptions, progress: bool = True, scene: Any = None) -> 
             f"this Python ({sys.executable}) has no Blender module (bpy): use the project's Python, "
             ".venv/bin/python (`make setup` creates it), or run `blender -b --python datasets_gen/generate.py -- ...`"
         ) from None
-    journal = SettingsJournal()
-    try:
-        return _run_in_blender(options, out_dir, progress, scene, journal, started)
-    finally:
-        journal.restore()
+    return SettingsJournal()
 
 
 @dataclass
@@ -138,12 +145,12 @@ def _run_in_blender(
 
     survey = _survey(options, scene, journal)
     if options.check_only:
-        _occupancy_prior(survey)  # its record only: the profile returned is the one a render writes
+        _scene_files(survey)  # their records only: the profile returned is the one a render writes
         return survey.profile
 
     settings = settings_record(options, survey.camera, survey.source)
     _require_consistent_folder(out_dir, options, settings, bpy.app.version_string)
-    prior = _occupancy_prior(survey)
+    prior, surface = _scene_files(survey)
     depth_splits = [split for split in SPLITS if options.wants_depth_normals(split) and options.views(split)]
     device = configure_render(
         survey.scene, survey.view_layer, journal, camera=survey.camera, samples=options.samples,
@@ -157,7 +164,8 @@ def _run_in_blender(
         "generator": GENERATOR_NAME, "settings": settings, "blender_version": bpy.app.version_string,
         "shard": [options.shard.index, options.shard.count] if options.shard else None,
     })
-    _write_occupancy_prior(out_dir, prior)
+    _write_scene_file(out_dir, PRIOR_NAME, prior)
+    _write_scene_file(out_dir, GEOMETRY_NAME, surface)
     setup_seconds = time.perf_counter() - started
     documents, timing = _render_views(options, survey, out_dir, depth_splits, generator, progress)
 
@@ -182,7 +190,7 @@ def _survey(options: GeneratorOptions, scene: Any, journal: Any) -> _Survey:
     from .scene_bounds import collect_geometry, render_view_layer, reveal_render_visible
     from .scene_facts import describe_material, describe_world, missing_files, source_settings, texture_records
 
-    scene, source = _load_scene(options, scene)
+    scene, source = load_scene(options, scene)
     label = source.get("file", source["source"])
     view_layer = render_view_layer(scene)
     camera = options.camera
@@ -234,27 +242,41 @@ def _survey(options: GeneratorOptions, scene: Any, journal: Any) -> _Survey:
                    profile)
 
 
-def _occupancy_prior(survey: _Survey) -> Optional[dict[str, Any]]:
-    """Voxelise the scene into the profile's `occupancy_prior`; return the npz arrays (None without).
+# Writes one of the scene's files to the path it is given.
+FileWriter = Callable[[str], None]
 
-    Debian's Blender has no numpy: its datasets record why they have no prior instead.
+
+def _scene_files(survey: _Survey) -> tuple[Optional[FileWriter], Optional[FileWriter]]:
+    """The writers of the occupancy prior and of the true surface, from one walk of the scene's
+    renderable triangles; each recorded in the profile, or why not (then None).
+
+    Debian's Blender has no numpy: its datasets record why they have neither instead.
     """
     try:
         import numpy  # noqa: F401
     except ImportError:
-        return _no_occupancy_prior(survey.profile, "this Blender's Python has no numpy")
-    from .scene_occupancy import build_occupancy_prior
+        reason = "this Blender's Python has no numpy"
+        return _no_occupancy_prior(survey.profile, reason), _no_scene_geometry(survey.profile, reason)
+    from .scene_occupancy import collect_parts
 
     started = time.perf_counter()
+    scene_parts = collect_parts(survey.view_layer, survey.frame)
+    return _occupancy_prior(survey, scene_parts, started), _scene_geometry(survey, scene_parts)
+
+
+def _occupancy_prior(survey: _Survey, scene_parts: Any, started: float) -> Optional[FileWriter]:
+    """Voxelise the scene into the profile's `occupancy_prior`; return its npz's writer (None without)."""
+    from .scene_occupancy import build_occupancy_prior
+
     try:
-        record, arrays = build_occupancy_prior(survey.view_layer, survey.frame)
+        record, arrays = build_occupancy_prior(scene_parts)
     except ValueError as error:
         return _no_occupancy_prior(survey.profile, f"nothing could be voxelised: {error}")
     survey.profile["occupancy_prior"] = record
     print(f"{GENERATOR_NAME}: occupancy prior: {'x'.join(map(str, record['resolution']))} cells, surface "
           f"{record['surface_fraction']:.1%}, solid {record['solid_fraction']:.1%} "
           f"({time.perf_counter() - started:.1f} s)", file=sys.stderr)
-    return arrays
+    return lambda path: write_npz_atomic(path, arrays)
 
 
 def _no_occupancy_prior(profile: dict[str, Any], reason: str) -> None:
@@ -263,12 +285,34 @@ def _no_occupancy_prior(profile: dict[str, Any], reason: str) -> None:
     print(f"{GENERATOR_NAME}: note: no occupancy prior: {reason}", file=sys.stderr)
 
 
-def _write_occupancy_prior(out_dir: str, arrays: Optional[dict[str, Any]]) -> None:
-    """Write the prior atomically (each shard writes the same one); remove an earlier run's when there is none."""
-    path = os.path.join(out_dir, PRIOR_NAME)
+def _scene_geometry(survey: _Survey, scene_parts: Any) -> Optional[FileWriter]:
+    """Weld the scene's triangles into the profile's `geometry` (the truth `eval --geometry`
+    measures a NeRF against); return its PLY's writer (None without)."""
+    from .surface_mesh import geometry_record, weld, write_ply_atomic
+
+    triangles = scene_parts.all_triangles()
+    if len(triangles) == 0:
+        return _no_scene_geometry(survey.profile, "no renderable object could be meshed")
+    vertices, faces = weld(triangles)
+    survey.profile["geometry"] = geometry_record(len(faces), len(vertices), scene_parts.filled_boxes,
+                                                 scene_parts.margin_reasons)
+    print(f"{GENERATOR_NAME}: scene geometry: {len(faces)} triangles", file=sys.stderr)
+    return lambda path: write_ply_atomic(path, vertices, faces)
+
+
+def _no_scene_geometry(profile: dict[str, Any], reason: str) -> None:
+    profile["geometry"] = None
+    profile["geometry_reason"] = reason
+    print(f"{GENERATOR_NAME}: note: no scene geometry file: {reason}", file=sys.stderr)
+
+
+def _write_scene_file(out_dir: str, name: str, write: Optional[FileWriter]) -> None:
+    """Write one of the scene's files atomically (each shard writes the same one); remove an
+    earlier run's when there is none."""
+    path = os.path.join(out_dir, name)
     try:
-        if arrays is not None:
-            write_npz_atomic(path, arrays)
+        if write is not None:
+            write(path)
         elif os.path.isfile(path):
             os.remove(path)
     except OSError as error:
@@ -324,7 +368,7 @@ def _render_views(
     return documents, (total, time.perf_counter() - loop_start, cycles_seconds)
 
 
-def _load_scene(options: GeneratorOptions, scene: Any) -> tuple[Any, dict[str, Any]]:
+def load_scene(options: GeneratorOptions, scene: Any) -> tuple[Any, dict[str, Any]]:
     """The scene to render and a record of where it came from (file and SHA-256 when on disk)."""
     import bpy
 

@@ -17,12 +17,13 @@ from __future__ import annotations
 import json
 import os
 import re
-from typing import Any, Iterable, Optional
+from typing import Any, BinaryIO, Callable, Iterable, Optional
 
 from .options import SPLITS, DatasetGenError, GeneratorOptions, Shard
 
 PROFILE_NAME = "scene_profile.json"
 PRIOR_NAME = "occupancy_prior.npz"  # voxelised geometry, named in the profile (scene_occupancy)
+GEOMETRY_NAME = "scene_geometry.ply"  # the renderable triangles, named in the profile (surface_mesh)
 DATASET_JSON_NAMES = tuple(f"transforms_{split}.json" for split in SPLITS) + (PROFILE_NAME,)
 PROGRESS_PREFIX = ".datasets_gen_progress"
 _VIEW_FILE = re.compile(r"r_(\d+)(\.png|_depth\.exr|_normal\.exr)")
@@ -226,13 +227,12 @@ def remove_temporary_files(out_dir: str, shard: Optional[Shard]) -> None:
                 os.remove(os.path.join(folder, name))
 
 
-def write_json_atomic(path: str, document: Any) -> None:
-    """Write JSON to a temporary sibling, flush it to disk, then os.replace it into `path`."""
+def write_file_atomic(path: str, write: Callable[[BinaryIO], None]) -> None:
+    """`write(handle)` into a temporary sibling, flush it to disk, then os.replace it into `path`."""
     temporary = temporary_path(path)
     try:
-        with open(temporary, "w", encoding="utf-8") as handle:
-            json.dump(document, handle, indent=2)
-            handle.write("\n")
+        with open(temporary, "wb") as handle:
+            write(handle)
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(temporary, path)
@@ -241,23 +241,21 @@ def write_json_atomic(path: str, document: Any) -> None:
             os.remove(temporary)
 
 
+def write_json_atomic(path: str, document: Any) -> None:
+    """JSON (indented, with a final newline), written atomically."""
+    text = json.dumps(document, indent=2) + "\n"
+    write_file_atomic(path, lambda handle: handle.write(text.encode("utf-8")))
+
+
 def write_npz_atomic(path: str, arrays: dict[str, Any]) -> None:
-    """numpy.savez_compressed to a temporary sibling, flushed to disk, then os.replace'd into `path`.
+    """numpy.savez_compressed, written atomically.
 
     numpy is imported here, not at the top: Blender builds without numpy never call this.
     """
     import numpy
 
-    temporary = temporary_path(path)
-    try:
-        with open(temporary, "wb") as handle:  # a handle: given a name, savez appends ".npz"
-            numpy.savez_compressed(handle, **arrays)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(temporary, path)
-    finally:
-        if os.path.exists(temporary):
-            os.remove(temporary)
+    # A handle, not a name: given a name, savez appends ".npz".
+    write_file_atomic(path, lambda handle: numpy.savez_compressed(handle, **arrays))
 
 
 def remove_stale_frames(out_dir: str, frame_counts: dict[str, int], depth_splits: Iterable[str]) -> None:

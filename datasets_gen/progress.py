@@ -19,8 +19,9 @@ LINE_INTERVAL_S = 10.0  # the most often a plain line is written
 class ViewProgress:
     """Counts rendered views; use as a context manager and call `advance(split, index)` per view."""
 
-    def __init__(self, total: int, enabled: bool = True) -> None:
+    def __init__(self, total: int, enabled: bool = True, unit: str = "view") -> None:
         self._total = total
+        self._unit = unit
         self._enabled = enabled
         self._done = 0
         self._start = self._last_line = time.monotonic()
@@ -31,15 +32,19 @@ class ViewProgress:
             except ImportError:
                 tqdm = None
             if tqdm is not None:
-                self._bar = tqdm(total=total, unit="view", file=sys.stderr, desc="rendering")
+                self._bar = tqdm(total=total, unit=unit, file=sys.stderr, desc="rendering")
 
     def advance(self, split: str, index: int) -> None:
         """Record that view `index` of `split` has been written."""
+        self.advance_named(f"{split} r_{index}")
+
+    def advance_named(self, name: str) -> None:
+        """Record that the item ``name`` (a view, a frame) has been written."""
         self._done += 1
         if not self._enabled:
             return
         if self._bar is not None:
-            self._bar.set_postfix_str(f"{split} r_{index}", refresh=False)
+            self._bar.set_postfix_str(name, refresh=False)
             self._bar.update(1)
         elif self._done == self._total or time.monotonic() - self._last_line >= LINE_INTERVAL_S \
                 or self._done == 1:
@@ -47,7 +52,7 @@ class ViewProgress:
             elapsed = self._last_line - self._start
             left = elapsed / self._done * (self._total - self._done)
             print(
-                f"datasets_gen: {self._done}/{self._total} views ({split} r_{index}), "
+                f"datasets_gen: {self._done}/{self._total} {self._unit}s ({name}), "
                 f"{elapsed:.1f} s, about {_duration(left)} left",
                 file=sys.stderr,
                 flush=True,

@@ -1,4 +1,5 @@
 """The occupancy prior of a scene: its renderable triangles in the NeRF frame, voxelised.
+The same triangles, collected once, are also the scene's true surface (surface_mesh).
 
 The same objects as collect_geometry (scene_bounds): evaluated (modifiers, instances), only
 what renders to the camera.  Meshable objects give their triangles (`loop_triangles` of
@@ -51,6 +52,10 @@ class SceneParts:
     margin_reasons: dict[str, tuple[float, str]] = field(default_factory=dict)  # object -> (margin, why)
     filled_boxes: dict[str, str] = field(default_factory=dict)  # object -> why
 
+    def all_triangles(self) -> np.ndarray:
+        """[T, 3, 3] every meshed triangle, whatever its margin (the scene's true surface)."""
+        return np.concatenate([np.zeros((0, 3, 3))] + [t for group in self.triangles.values() for t in group])
+
     def parts(self) -> list[Part]:
         empty = np.zeros((0, 3, 3))
         return [Part(np.concatenate(self.triangles.get(margin, [empty])),
@@ -58,10 +63,10 @@ class SceneParts:
                 for margin in sorted(set(self.triangles) | set(self.boxes))]
 
 
-def build_occupancy_prior(view_layer: "bpy.types.ViewLayer", frame: Similarity,
+def build_occupancy_prior(scene_parts: SceneParts,
                           resolution: int = DEFAULT_RESOLUTION) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """(the profile's `occupancy_prior` record, the npz arrays); ValueError when nothing can be voxelised."""
-    scene_parts = collect_parts(view_layer, frame)
+    """(the profile's `occupancy_prior` record, the npz arrays) of collect_parts' geometry;
+    ValueError when nothing can be voxelised."""
     occupancy = voxelise(scene_parts.parts(), resolution)
     return prior_record(occupancy, scene_parts), occupancy.arrays()
 

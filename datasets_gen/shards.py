@@ -6,8 +6,8 @@ Each shard renders the views whose index % N == K in every split and writes
 same settings, that every view appears exactly once and its files exist, then writes the
 final transforms_{split}.json and scene_profile.json (atomically, last) and removes the shard
 JSON files: the folder then equals the one an unsharded run writes.  The occupancy prior
-(occupancy_prior.npz) is the same for every shard, which each wrote atomically: the merge
-only checks that it is there when the profile names it.
+(occupancy_prior.npz) and the scene geometry (scene_geometry.ply) are the same for every shard,
+which each wrote atomically: the merge only checks that they are there when the profile names them.
 
 No bpy: a merge can run on any machine that sees the folder.
 """
@@ -20,6 +20,7 @@ from typing import Any
 from .dataset_json import frame_index
 from .options import SPLITS, DatasetGenError, Shard
 from .output_dir import (
+    GEOMETRY_NAME,
     PRIOR_NAME,
     PROFILE_NAME,
     read_json,
@@ -64,10 +65,12 @@ def merge(out_dir: str) -> dict[str, Any]:
             _require_same(reference, document, f"{transforms_name(split, Shard(index, count))}")
 
     profile = reference["shard"]["scene_profile"]
-    prior_path = os.path.join(out_dir, PRIOR_NAME)
-    if isinstance(profile.get("occupancy_prior"), dict) and not os.path.isfile(prior_path):
-        raise DatasetGenError(f"--merge: {prior_path} is missing (every shard writes the occupancy prior: "
-                              "run one of them again with --resume)")
+    for key, name, what in (("occupancy_prior", PRIOR_NAME, "occupancy prior"),
+                            ("geometry", GEOMETRY_NAME, "scene geometry")):
+        path = os.path.join(out_dir, name)
+        if isinstance(profile.get(key), dict) and not os.path.isfile(path):
+            raise DatasetGenError(f"--merge: {path} is missing (every shard writes the {what}: "
+                                  "run one of them again with --resume)")
     merged = {split: _merged_document(out_dir, split, documents[split]) for split in SPLITS}
     for split in SPLITS:
         write_json_atomic(os.path.join(out_dir, f"transforms_{split}.json"), merged[split])

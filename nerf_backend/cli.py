@@ -14,7 +14,10 @@ from .configs.presets import PRESETS
 from .core.devices import resolve_device
 from .core.errors import NerfError
 from .data.run_folder import RunFolder
+from .evaluation.animation import FRAME_METRICS, render_animation
 from .evaluation.evaluate import compare_images, evaluate_renders, evaluate_run
+from .evaluation.geometry_eval import DEFAULT_RESOLUTION as DEFAULT_MESH_RESOLUTION
+from .evaluation.geometry_eval import geometry_line, score_geometry
 from .evaluation.inference import render_cameras, render_split
 from .evaluation.mesh import mesh_run
 from .evaluation.report import write_report
@@ -106,7 +109,14 @@ def build_parser() -> argparse.ArgumentParser:
                              f"for NeRF MLPs, {MarchedModel.render_chunk} for marched models)")
     render.add_argument("--cameras", type=Path, default=None,
                         help="render these cameras instead (a transforms JSON with w, h and intrinsics; no images)")
-    render.add_argument("--out", type=Path, default=None, help="with --cameras: the output folder")
+    render.add_argument("--camera-path", type=Path, default=None, metavar="PATH.json",
+                        help="render a camera animation instead (camera_path.json from datasets_gen --camera-path or "
+                             "the add-on): a PNG per frame and an MP4 at the scene's frame rate, into --out "
+                             "(default: RUN/animation/CAMERA); frames already rendered are kept")
+    render.add_argument("--cycles", action="store_true",
+                        help="with --camera-path: compare with the path's Cycles frames: a side-by-side video "
+                             "(Cycles | NeRF | error), PSNR/SSIM per frame (JSON and plot)")
+    render.add_argument("--out", type=Path, default=None, help="with --cameras or --camera-path: the output folder")
     render.add_argument("--scale", type=_positive_float, default=1.0,
                         help="render at this multiple of the dataset's resolution (into renders/SPLIT_xSCALE)")
     render.add_argument("--no-progress", action="store_true")
@@ -123,6 +133,14 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
     evaluate.add_argument("--chunk", type=_positive_int, default=None, help="rays per forward pass when rendering")
     evaluate.add_argument("--no-progress", action="store_true")
+    evaluate.add_argument("--geometry", action="store_true",
+                          help="also measure the run's surface (its mesh) against the scene's true one (the "
+                               "dataset's scene_geometry.ply): Chamfer, F-score at 1 %% of the bounding-sphere "
+                               "radius, normal consistency; writes RUN/geometry.json and RUN/geometry.png")
+    evaluate.add_argument("--mesh-resolution", type=_positive_int, default=DEFAULT_MESH_RESOLUTION,
+                          help=f"with --geometry: as mesh --resolution (default: {DEFAULT_MESH_RESOLUTION})")
+    evaluate.add_argument("--mesh-threshold", type=_positive_float, default=None,
+                          help="with --geometry: as mesh --threshold (default: ln 2 / the render step)")
 
     compare = sub.add_parser("compare", help="score one render against one reference image (PSNR, SSIM, LPIPS) "
                                             "and write their difference heatmap")
@@ -228,6 +246,22 @@ def _run(args: argparse.Namespace) -> int:
         print(f"{summary_line(result)}; "
               f"written {args.out / 'compare.json'}, {args.out / 'difference.png'}")
         return 0
+    if args.command == "render" and args.camera_path is not None:
+        if args.cameras is not None:
+            raise NerfError("render: give --cameras or --camera-path, not both")
+        record = render_animation(RunFolder(args.run), args.camera_path, device, args.out, chunk=args.chunk,
+                                  cycles=args.cycles, progress=not args.no_progress)
+        width, height = record["size"]
+        speed = (f"{record['seconds_per_frame']:.2f} s per frame on {record['device']}"
+                 if record["seconds_per_frame"] is not None else "every frame was already rendered")
+        compared = ""
+        if args.cycles:
+            compared = (f"; against Cycles: {summary_line(record['mean'], FRAME_METRICS)} (mean of "
+                        f"{len(record['frames'])} frames); written {record['side_by_side_video']}")
+        print(f"rendered {len(record['frames'])} frames at {width}×{height} ({speed}): {record['video']}{compared}")
+        return 0
+    if args.command == "render" and args.cycles:
+        raise NerfError("render --cycles: needs --camera-path")
     if args.command == "render" and args.cameras is not None:
         if args.out is None:
             raise NerfError("render --cameras: give --out, the folder for the images")
@@ -245,6 +279,11 @@ def _run(args: argparse.Namespace) -> int:
 
     if (args.run is None) == (args.renders is None and args.dataset is None):
         raise NerfError("eval: give a run folder, or --dataset and --renders (not both)")
+    if args.geometry and args.run is None:
+        raise NerfError("eval --geometry: give a run folder (its mesh is what is measured)")
+    if args.geometry:  # first: a dataset without the true surface is refused before any rendering
+        geometry = score_geometry(RunFolder(args.run), device, args.mesh_resolution, args.mesh_threshold)
+        print(f"{geometry_line(geometry)}; written {args.run / 'geometry.json'}, {args.run / 'geometry.png'}")
     if args.run is not None:
         metrics = evaluate_run(args.run, args.split, device, args.lpips_weights, args.lpips_linear,
                                chunk=args.chunk, progress=not args.no_progress)

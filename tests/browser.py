@@ -83,6 +83,19 @@ def load_page(page: Path, screenshot: Path, width: int = 1280) -> dict:
                 loaded: document.body.dataset.imagesLoaded,
                 broken: Array.prototype.filter.call(document.images, i => !i.complete || i.naturalWidth === 0).map(i => i.src),
                 height: document.documentElement.scrollHeight})""")["result"]["value"])
+            # Videos do not hold up the load event: wait (10 s at most) until each has its metadata.
+            state["videos"] = json.loads(devtools.call("Runtime.evaluate", returnByValue=True, awaitPromise=True,
+                                                       expression="""new Promise(done => {
+                const videos = Array.from(document.querySelectorAll('video'));
+                const report = () => done(JSON.stringify(videos.map(v => ({src: v.src, ready: v.readyState,
+                    duration: v.duration, width: v.videoWidth, error: v.error ? v.error.code : null,
+                    playable: v.canPlayType('video/mp4; codecs="avc1.640028"')}))));
+                const start = Date.now();
+                (function wait() {
+                    if (videos.every(v => v.readyState >= 1 || v.error) || Date.now() - start > 10000) report();
+                    else setTimeout(wait, 100);
+                })();
+            })""")["result"]["value"])
             height = min(int(state["height"]), 16000)
             devtools.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False)
             shot = devtools.call("Page.captureScreenshot", format="png")

@@ -53,3 +53,29 @@ def trained_run(tiny_demo_dataset, tmp_path_factory) -> Path:
     run_python("-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "preview", "--out", str(run),
                "--iters", str(TRAIN_ITERS), "--no-progress")
     return run
+
+
+def camera_path_through_test_views(dataset: Path, folder: Path, repeats: int = 1, copy_images: bool = True) -> tuple:
+    """A camera path (``folder/camera_path.json``) through the dataset's test views, ``repeats``
+    times over, whose 'Cycles' frames are those views' images: scoring it must give ``eval``'s
+    numbers. Returns the path, its frame count and the ``(image, cycles frame)`` pairs; the
+    images are copied in unless ``copy_images`` is False (a job's stage copies them)."""
+    import json
+    import shutil
+
+    test = json.loads((dataset / "transforms_test.json").read_text())
+    frames, pairs = [], []
+    for index in range(repeats * len(test["frames"])):
+        view = test["frames"][index % len(test["frames"])]
+        stem = f"{index + 1:04d}"
+        frames.append({"frame": index + 1, "transform_matrix": view["transform_matrix"],
+                       "cycles_file_path": f"cycles/{stem}.png",
+                       **{key: test[key] for key in ("w", "h", "fl_x", "fl_y", "cx", "cy")}})
+        pairs.append((dataset / f"{view['file_path']}.png", folder / "cycles" / f"{stem}.png"))
+    (folder / "cycles").mkdir(parents=True, exist_ok=True)
+    path = folder / "camera_path.json"
+    path.write_text(json.dumps({"camera": "test views", "fps": 12, "frames": frames}))
+    if copy_images:
+        for source, target in pairs:
+            shutil.copy(source, target)
+    return path, len(frames), pairs

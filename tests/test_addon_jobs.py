@@ -1,21 +1,22 @@
 """The add-on's job handling, driven without Blender: a real backend training subprocess
 started, followed, cancelled, resumed and killed; a real background Blender rendering a
-dataset; the backend set-up failing clearly; the camera mapping's maths."""
+dataset; a camera animation's two stages chained, cancelled and resumed; the backend set-up
+failing clearly."""
 
 from __future__ import annotations
 
-import math
+import json
 import os
 import shutil
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
 from addon.backend_setup import BackendSetup, check_backend
-from addon.camera_mapping import camera_to_nerf
-from addon.jobs import DatasetJob, TrainingJob
-from conftest import REPO_ROOT, SHARED_DIR
+from addon.jobs import AnimationJob, DatasetJob, TrainingJob
+from conftest import REPO_ROOT, SHARED_DIR, camera_path_through_test_views
 
 
 def _wait_for(job, predicate, timeout=300.0):
@@ -96,6 +97,47 @@ def test_dataset_job_renders_in_a_background_blender(tmp_path):
     assert (out / "transforms_test.json").is_file() and job.log_path.is_file()
 
 
+def test_animation_job_chains_its_stages_cancels_and_resumes(trained_run, tmp_path):
+    dataset = Path(json.loads((trained_run / "config.json").read_text())["dataset"])
+    path, count, pairs = camera_path_through_test_views(dataset, tmp_path / "path", repeats=12, copy_images=False)
+    # The first stage copies the views' images in as its 'Cycles' frames, as Blender would render them.
+    copy_stage = [sys.executable, "-c", "import shutil, sys, json; [shutil.copy(a, b) for a, b in json.loads(sys.argv[1])]",
+                  json.dumps([[str(a), str(b)] for a, b in pairs])]
+    out = tmp_path / "run_animation"
+    render = [sys.executable, "-m", "nerf_backend", "render", str(trained_run), "--camera-path", str(path),
+              "--out", str(out), "--cycles", "--no-progress"]
+    env = dict(os.environ, PYTHONPATH=str(REPO_ROOT))
+    job = AnimationJob(out)
+    assert job.poll().state == "idle"
+    job.start(path, count, [("cycles", copy_stage), ("nerf", render)], env=env, cycles=True)
+    running = _wait_for(job, lambda s: s.state == "running" and s.detail.startswith("NeRF:") and 0 < s.fraction)
+    assert running.fraction >= 0.5  # the first of two stages is done
+    _wait_for(job, lambda s: (out / "frames").is_dir() and len(list((out / "frames").glob("*.png"))) >= 3)
+    job.cancel()
+    cancelled = _wait_for(job, lambda s: s.state != "running")
+    assert cancelled.state == "cancelled", cancelled
+    kept = {p.name: p.stat().st_mtime_ns for p in (out / "frames").glob("*.png")}
+    assert 3 <= len(kept) < count
+
+    job = AnimationJob(out)  # a reopened .blend: the job found again from its folder
+    assert job.poll().state == "cancelled"
+    job.start(path, count, [("nerf", render)], env=env, cycles=True)
+    done = _wait_for(job, lambda s: s.state in ("done", "failed"), timeout=600)
+    assert done.state == "done", done
+    assert done.detail.startswith(f"{count} frames, PSNR") and done.extra["record"]["side_by_side_video"]
+    assert all((out / "frames" / name).stat().st_mtime_ns == stamp for name, stamp in kept.items())
+
+
+def test_animation_job_reports_the_backends_error(tmp_path):
+    job = AnimationJob(tmp_path / "animation")
+    path = tmp_path / "missing" / "camera_path.json"
+    job.start(path, 3, [("nerf", [sys.executable, "-m", "nerf_backend", "render", str(tmp_path / "no_run"),
+                                  "--camera-path", str(path), "--no-progress"])],
+              env=dict(os.environ, PYTHONPATH=str(REPO_ROOT)))
+    failed = _wait_for(job, lambda s: s.state != "running")
+    assert failed.state == "failed" and "camera_path.json" in failed.error and "exited with code 2" in failed.error
+
+
 def test_backend_check_names_what_the_python_has():
     ok, message = check_backend(sys.executable)
     assert ok and message.startswith("torch ") and ("CPU only" in message or "GPU" in message)
@@ -116,23 +158,6 @@ def test_backend_setup_fails_clearly_when_pip_cannot_install(tmp_path):
     assert (tmp_path / "venv").is_dir()  # the environment itself was made
 
 
-def test_camera_mapping_applies_the_datasets_similarity():
-    angle = 0.3
-    rotation = [[math.cos(angle), -math.sin(angle), 0.0], [math.sin(angle), math.cos(angle), 0.0], [0.0, 0.0, 1.0]]
-    # An object scale of 3 on the camera: only its rotation and position matter.
-    matrix = [[3 * rotation[r][c] for c in range(3)] + [p] for r, p in zip(range(3), (1.0, -2.0, 0.5))]
-    matrix.append([0.0, 0.0, 0.0, 1.0])
-    mapped = camera_to_nerf(matrix, {"scale": 2.0, "translation": [0.1, 0.2, -0.3]})
-    for r in range(3):
-        for c in range(3):
-            assert mapped[r][c] == pytest.approx(rotation[r][c], abs=1e-12)
-    assert [mapped[r][3] for r in range(3)] == pytest.approx([2.1, -3.8, 0.7])
-    assert mapped[3] == [0.0, 0.0, 0.0, 1.0]
-    with pytest.raises(ValueError):
-        camera_to_nerf([[0.0] * 4] * 4, {"scale": 1.0})
-
-
-@pytest.mark.slow
 def test_backend_setup_makes_a_working_backend(tmp_path):
     """The success path, with this project's own pins (torch 2.13.0 CPU lies on disk here; the
     shipped requirements ask for any recent torch, which on a GPU machine is a GPU build)."""

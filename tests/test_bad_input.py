@@ -30,7 +30,7 @@ from PIL import Image
 from conftest import run_python
 from nerf_backend.cli import main
 from nerf_backend.data.dataset import (
-    MAX_IMAGE_SIDE, CameraPath, DatasetSplit, SceneBounds, load_cameras, load_scene_bounds, load_scene_profile,
+    MAX_IMAGE_SIDE, StillCameras, DatasetSplit, SceneBounds, load_cameras, load_scene_bounds, load_scene_profile,
     load_split,
 )
 from nerf_backend.core.errors import DatasetError
@@ -554,8 +554,8 @@ def test_load_split_mutated_json(fuzz_dataset, data):
     _expect_valid_or_dataset_error(lambda: load_split(root, "fuzz"), lambda split: _check_split(split, root))
 
 
-def _check_cameras(cameras: CameraPath) -> None:
-    assert isinstance(cameras, CameraPath)
+def _check_cameras(cameras: StillCameras) -> None:
+    assert isinstance(cameras, StillCameras)
     count = cameras.poses.shape[0]
     _check_poses(cameras.poses, count)
     assert 1 <= cameras.intrinsics.width <= MAX_IMAGE_SIDE and 1 <= cameras.intrinsics.height <= MAX_IMAGE_SIDE

@@ -40,8 +40,15 @@ def test_short_bench_writes_json_table_and_plot(tiny_demo_dataset, tmp_path):
         assert 0 < variant["model_size_mb"] < 100
     slim = report["variants"][2]
     assert slim["preset"] == "preview" and slim["overrides"] == ["field.width=32"]
+    # The tiny demo has a true surface: each variant's final mesh is measured against it (a
+    # variant 6 iterations in may have no surface at the threshold yet: then None and why).
+    assert report["geometry"]["mesh_resolution"] == 128 and report["geometry"]["tau"] > 0
+    for variant in report["variants"]:
+        final = variant["final"]
+        assert final["chamfer"] is None and final["geometry_unavailable"] or 0 < final["chamfer"] < 1
     table = (out / "bench.md").read_text()
     assert table.count("\n| ") == 1 + 1 + 3  # header, rule, one row a variant
+    assert "| Chamfer | F-score at τ |" in table
     with Image.open(out / "bench.png") as plot:
         assert plot.size[0] > 400 and plot.size[1] > 300
     assert "bench.json" in result.stdout

@@ -102,7 +102,7 @@ def bright_object_datasets(tmp_path_factory):
                "--train-views", "30", "--val-views", "2", "--test-views", "4", "--samples", "8", "--no-progress")
     without_profile = folder / "without_profile"
     shutil.copytree(with_profile, without_profile)
-    for name in ("scene_profile.json", "occupancy_prior.npz"):
+    for name in ("scene_profile.json", "occupancy_prior.npz", "scene_geometry.ply"):
         (without_profile / name).unlink(missing_ok=True)
     return {"with_profile": with_profile, "without_profile": without_profile}
 

@@ -21,6 +21,7 @@ from PIL import Image
 
 from datasets_gen import trajectories as tr
 from datasets_gen.intrinsics import camera_intrinsics
+from nerf_backend.core.ply import read_ply
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPTS = Path(__file__).resolve().parent / "blender_scripts"
@@ -250,6 +251,21 @@ def test_scene_profile_bounds_hold_every_rendered_pixel(demo_dataset: Path) -> N
             margin = 1.5  # Cycles' pixel filter spreads edges by up to its 1.5 px width
             assert columns.min() + 0.5 >= u.min() - margin and columns.max() + 0.5 <= u.max() + margin
             assert rows.min() + 0.5 >= v.min() - margin and rows.max() + 0.5 <= v.max() + margin
+
+
+def test_scene_geometry_is_the_renderable_triangles_in_the_profile_bounds(demo_dataset: Path) -> None:
+    """scene_geometry.ply (the truth eval --geometry measures against): as many triangles as the
+    profile records, every vertex inside the profile's bounds (float32 in the file)."""
+    profile = json.loads((demo_dataset / "scene_profile.json").read_text())
+    record = profile["geometry"]
+    assert record["file"] == "scene_geometry.ply" and record["frame"].startswith("NeRF frame")
+    assert record["left_out"] == []  # the demo has nothing to_mesh cannot measure
+    vertices, faces = read_ply(demo_dataset / record["file"])
+    assert len(faces) == record["triangles"] > 100 and len(vertices) == record["vertices"]
+    low, high = np.asarray(profile["bounds"]["min"]), np.asarray(profile["bounds"]["max"])
+    assert (vertices >= low - 1e-5).all() and (vertices <= high + 1e-5).all()
+    np.testing.assert_allclose(vertices.min(axis=0), low, atol=1e-5)  # the bounds are the triangles'
+    np.testing.assert_allclose(vertices.max(axis=0), high, atol=1e-5)
 
 
 # --- the pure rig maths reproduces the protocol's Blender rig (Empty + child camera + Track-To) --

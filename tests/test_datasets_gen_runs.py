@@ -32,7 +32,7 @@ def dataset_files(dataset: Path) -> list[str]:
 
 def assert_same_dataset(produced: Path, reference: Path) -> None:
     """Same files; identical JSON; identical PNG pixels; EXRs equal to float round-off; the
-    same occupancy prior (arrays equal; the zip's own timestamps may differ).
+    same occupancy prior (arrays equal; the zip's own timestamps may differ) and scene geometry.
 
     Cycles' beauty pass is bit-identical for a fixed seed; its normal pass sums samples with
     atomic float adds whose order varies between runs, so normals may differ by ~1e-7.  PNG files
@@ -50,6 +50,8 @@ def assert_same_dataset(produced: Path, reference: Path) -> None:
             assert a.keys() == b.keys()
             for channel in a:
                 np.testing.assert_allclose(a[channel], b[channel], atol=1e-6, err_msg=f"{name} {channel}")
+        elif name.endswith(".ply"):  # the scene's triangles: written the same way by every run and shard
+            assert (produced / name).read_bytes() == (reference / name).read_bytes(), name
         elif name.endswith(".npz"):
             with np.load(produced / name) as a, np.load(reference / name) as b:
                 assert a.files == b.files, name
@@ -115,6 +117,11 @@ def test_shards_merged_equal_an_unsharded_run(reference_run: Path, tmp_path: Pat
     missing = run_module("--merge", str(out))
     assert missing.returncode == 2 and "occupancy_prior.npz is missing" in missing.stderr
     (out / "aside.npz").rename(prior)
+    geometry = out / "scene_geometry.ply"
+    geometry.rename(out / "aside.ply")
+    missing = run_module("--merge", str(out))
+    assert missing.returncode == 2 and "scene_geometry.ply is missing" in missing.stderr
+    (out / "aside.ply").rename(geometry)
     merged = run_module("--merge", str(out))
     assert merged.returncode == 0, merged.stderr
     assert_same_dataset(out, reference_run)

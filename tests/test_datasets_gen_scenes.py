@@ -395,7 +395,8 @@ def test_both_entry_points_give_the_same_dataset(tmp_path: Path, shared_scenes: 
         assert binary == module
     binary_profile = json.loads((binary_out / "scene_profile.json").read_text())
     module_profile = json.loads((module_out / "scene_profile.json").read_text())
-    # Debian's Blender has no numpy: no occupancy prior, and the profile says why.
-    assert binary_profile.pop("occupancy_prior") is None and module_profile.pop("occupancy_prior")
-    assert "numpy" in binary_profile.pop("occupancy_prior_reason")
+    # Debian's Blender has no numpy: no occupancy prior nor scene geometry, and the profile says why.
+    for key in ("occupancy_prior", "geometry"):
+        assert binary_profile.pop(key) is None and module_profile.pop(key)
+        assert "numpy" in binary_profile.pop(f"{key}_reason")
     assert binary_profile == module_profile

@@ -153,7 +153,7 @@ def test_backend_imports_are_at_the_top_of_modules():
 
 
 # What each third-party module the backend imports is installed as.
-DISTRIBUTIONS = {"PIL": "pillow", "skimage": "scikit-image", "OpenEXR": "OpenEXR"}
+DISTRIBUTIONS = {"PIL": "pillow", "skimage": "scikit-image", "OpenEXR": "OpenEXR", "imageio_ffmpeg": "imageio-ffmpeg"}
 
 
 def _requirement_names(lines: list[str]) -> set[str]:

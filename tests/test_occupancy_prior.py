@@ -347,6 +347,11 @@ def test_hair_displacement_and_unmeasurable_objects_get_their_margins(datasets: 
     assert any(reason.startswith(f"Displaced: +{displacement_cells} cells") and "scale 0.3" in reason
                for reason in reasons)
     assert [entry.split(":")[0] for entry in record["filled_boxes"]] == ["Strands", "Unreadable"]
+    # The scene geometry file holds the meshes only: it names what it leaves out and what
+    # renders beyond its mesh.
+    geometry = profile["geometry"]
+    assert [entry.split(":")[0] for entry in geometry["left_out"]] == ["Strands", "Unreadable"]
+    assert [entry.split(":")[0] for entry in geometry["beyond_mesh"]] == ["Displaced", "Hairy"]
 
     def is_marked(*blender_points: tuple[float, float, float]) -> list[bool]:
         return marked(arrays, "surface", to_nerf(profile, np.array(blender_points))).tolist()
@@ -377,6 +382,8 @@ def test_blender_without_numpy_writes_a_complete_dataset_without_a_prior(tmp_pat
     assert profile["occupancy_prior"] is None
     assert profile["occupancy_prior_reason"] == "this Blender's Python has no numpy"
     assert not (out / "occupancy_prior.npz").exists()
+    assert profile["geometry"] is None and profile["geometry_reason"] == "this Blender's Python has no numpy"
+    assert not (out / "scene_geometry.ply").exists()
     for split in ("train", "val", "test"):
         for frame in load_split(out, split)["frames"]:
             assert (out / (frame["file_path"] + ".png")).is_file()

@@ -13,7 +13,7 @@ import pytest
 from PIL import Image
 
 from browser import chromium_binary, load_page
-from conftest import run_python
+from conftest import camera_path_through_test_views, run_python
 from nerf_backend.evaluation.evaluate import depth_error
 from nerf_backend.core.files import write_exr
 
@@ -57,10 +57,15 @@ def report_page(trained_run, tiny_demo_dataset, tmp_path_factory):
     """A report comparing the trained run with a copy of its renders scored as another tool's."""
     other = tmp_path_factory.mktemp("other") / "renders"
     other.mkdir()
-    run_python("-m", "nerf_backend", "eval", str(trained_run), "--no-progress")
+    # --geometry: the run's report gains its Geometry section (the soft preview NeRF needs a threshold).
+    run_python("-m", "nerf_backend", "eval", str(trained_run), "--no-progress", "--geometry", "--mesh-resolution",
+               "48", "--mesh-threshold", "5")
     for png in (trained_run / "renders" / "test").glob("*.png"):
         shutil.copy(png, other / png.name)
     run_python("-m", "nerf_backend", "eval", "--dataset", str(tiny_demo_dataset), "--renders", str(other))
+    # An animation beside Cycles: the report gains its Animation section with the video.
+    path, _, _ = camera_path_through_test_views(tiny_demo_dataset, tmp_path_factory.mktemp("path") / "test_views")
+    run_python("-m", "nerf_backend", "render", str(trained_run), "--camera-path", str(path), "--cycles", "--no-progress")
     result = run_python("-m", "nerf_backend", "report", str(trained_run), str(other))
     page = trained_run / "report" / "index.html"
     assert f"report: {page}" in result.stdout
@@ -82,6 +87,14 @@ def test_report_holds_the_headline_views_and_curves(report_page, trained_run):
         assert len(psnrs) == len(metrics["per_view"]) and psnrs == sorted(psnrs)  # worst first
     images = report_page.parent / "images"
     assert (images / "r0_training.png").is_file() and (images / "error_scale.png").is_file()
+    # The run measured by eval --geometry has a Geometry section; the other tool's renders have none.
+    geometry = json.loads((trained_run / "geometry.json").read_text())
+    assert text.count("Geometry against the scene's true surface") == 1 and (images / "r0_geometry.png").is_file()
+    assert f"<td class=num>{geometry['f_score']:.3f}</td>" in text and "F-score at τ" in text
+    # The animation rendered beside Cycles: its video, the frames' mean and worst scores, the plot.
+    frames = json.loads((trained_run / "animation" / "test_views" / "frame_metrics.json").read_text())
+    assert text.count("Animation: test views") == 1 and (images / "r0_test_views.mp4").is_file()
+    assert f"<td class=num>{frames['mean']['psnr']:.2f} dB</td>" in text and (images / "r0_test_views_metrics.png").is_file()
 
 
 def test_report_in_headless_chromium(report_page, tmp_path):
@@ -93,7 +106,12 @@ def test_report_in_headless_chromium(report_page, tmp_path):
     state = load_page(report_page, shot)
     assert state["total"] > 10 and state["broken"] == []
     assert int(state["loaded"]) == state["total"]  # the page's own count, after its load event
-    assert state["requests"] and all(url.startswith("file://") for url in state["requests"]), state["requests"]
+    # Nothing from a network: the page's own files, and the browser's inline icons of the video controls.
+    assert state["requests"] and all(url.startswith(("file://", "data:")) for url in state["requests"]), state["requests"]
+    # The animation's H.264 video decodes: metadata read, 4 frames at 12 fps, three 40-pixel views wide.
+    (video,) = state["videos"]
+    assert video["error"] is None and video["ready"] >= 1 and video["width"] == 120, video
+    assert video["duration"] == pytest.approx(4 / 12, abs=0.01), video
     with Image.open(shot) as image:
         pixels = np.asarray(image.convert("RGB"), dtype=np.float32)
     assert pixels.shape[0] > 1000 and pixels.shape[1] >= 1200

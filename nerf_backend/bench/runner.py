@@ -21,6 +21,7 @@ from ..core.errors import NerfError
 from ..core.files import write_json
 from ..data.dataset import load_split
 from ..data.run_folder import RunFolder
+from ..evaluation.geometry_eval import TAU_RULE, scene_tau, score_geometry, truth_file
 from ..evaluation.inference import load_trained_model
 from ..evaluation.render_views import render_image
 from ..metrics.registry import MetricTools, mean_scores, score_image
@@ -31,6 +32,8 @@ from .variants import Variant, ablation_order
 
 # The bench scores without LPIPS: its weights are optional, and a bench must run anywhere.
 BENCH_TOOLS = MetricTools(lpips_unavailable="the bench does not load LPIPS weights")
+# Marching cubes at a modest resolution: a few seconds a variant on a CPU.
+BENCH_MESH_RESOLUTION = 128
 
 
 def _score(run_dir: Path, split, indices: list[int], device: torch.device) -> tuple[dict, float]:
@@ -45,6 +48,28 @@ def _score(run_dir: Path, split, indices: list[int], device: torch.device) -> tu
         rendered = np.round(image.rgb * 255) / 255  # as written to PNG
         per_view.append(score_image(rendered, split.rgb_on_white(index).numpy(), BENCH_TOOLS))
     return mean_scores(per_view), float(np.mean(seconds))
+
+
+def _geometry(run_dir: Path, dataset: str, device: torch.device) -> dict:
+    """The final checkpoint's Chamfer distance and F-score against the scene's true surface
+    (``eval --geometry`` at BENCH_MESH_RESOLUTION); nothing for a dataset without one, None
+    and the reason when there is no mesh to measure (a collapsed variant has no surface)."""
+    if truth_file(dataset) is None:
+        return {}
+    try:
+        record = score_geometry(RunFolder(run_dir), device, BENCH_MESH_RESOLUTION)
+    except NerfError as exc:
+        return {"chamfer": None, "f_score": None, "geometry_unavailable": str(exc)}
+    return {"chamfer": record["chamfer"], "f_score": record["f_score"]}
+
+
+def _geometry_record(dataset: Path) -> dict | None:
+    """How the variants' geometry was measured, or None for a dataset without a true surface."""
+    truth = truth_file(dataset)
+    if truth is None:
+        return None
+    return {"truth": str(truth), "mesh_resolution": BENCH_MESH_RESOLUTION, "tau": scene_tau(dataset),
+            "tau_rule": TAU_RULE}
 
 
 def bench_variant(dataset: str, variant: Variant, out_dir: str, budget_seconds: float | None,
@@ -69,6 +94,7 @@ def bench_variant(dataset: str, variant: Variant, out_dir: str, budget_seconds: 
         print(f"bench {variant.name}: {summary.iteration} it, {summary.train_seconds:.1f} s, "
               f"PSNR {scores['psnr']:.2f} dB on {len(curve_indices)} test views", file=sys.stderr, flush=True)
     final_scores, render_seconds = _score(run_dir, test, list(range(len(test))), device)
+    geometry = _geometry(run_dir, dataset, device)
     model, _, _ = load_trained_model(RunFolder(run_dir), device)
     buffer = io.BytesIO()
     torch.save(model.state_dict(), buffer)
@@ -76,7 +102,7 @@ def bench_variant(dataset: str, variant: Variant, out_dir: str, budget_seconds: 
         "name": variant.name, "preset": variant.preset, "overrides": list(variant.overrides),
         "curve": curve,
         "time_to_psnr_s": {f"{t:g}": time_to_reach(curve, t) for t in THRESHOLDS_DB},
-        "final": {**final_scores, "test_views": len(test),
+        "final": {**final_scores, **geometry, "test_views": len(test),
                   "iterations": summary.iteration, "train_seconds": summary.train_seconds},
         "render_seconds_per_image": render_seconds,
         "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
@@ -145,6 +171,7 @@ def run_bench(dataset: Path, variants: list[Variant], out_dir: Path, budget_seco
         "machine": {"torch": torch.__version__, "threads": torch.get_num_threads()},
         "variants": results,
         "ablation_order": ablation_order(results),
+        "geometry": _geometry_record(dataset),
     }
     write_json(out_dir / "bench.json", report)
     (out_dir / "bench.md").write_text(markdown_table(report))

@@ -15,19 +15,29 @@ def _fmt(value: float | None, spec: str) -> str:
 
 def markdown_table(report: dict) -> str:
     budget = report["budget"]
+    # Geometry columns only when the dataset has a true surface (datasets_gen's scene_geometry.ply).
+    geometry = report.get("geometry")
     lines = [
         f"Budget: {budget.get('seconds', budget.get('iterations'))} "
         f"{'training seconds' if 'seconds' in budget else 'iterations'} per variant, seed {report['seed']}, "
         f"torch {report['machine']['torch']} on {report['machine']['threads']} threads.",
         "",
-        "| variant | iterations | test PSNR (dB) | SSIM | s to 20 / 25 / 30 dB | render s/image | peak MB | model MB |",
-        "| --- | ---: | ---: | ---: | --- | ---: | ---: | ---: |",
+        "| variant | iterations | test PSNR (dB) | SSIM | s to 20 / 25 / 30 dB | render s/image | peak MB | model MB |"
+        + (" Chamfer | F-score at τ |" if geometry else ""),
+        "| --- | ---: | ---: | ---: | --- | ---: | ---: | ---: |" + (" ---: | ---: |" if geometry else ""),
     ]
     for v in report["variants"]:
         reach = " / ".join(_fmt(v["time_to_psnr_s"][f"{t:g}"], ".0f") for t in THRESHOLDS_DB)
+        shape = f" {_fmt(v['final'].get('chamfer'), '.4f')} | {_fmt(v['final'].get('f_score'), '.3f')} |"
         lines.append(f"| {v['name']} | {v['final']['iterations']} | {v['final']['psnr']:.2f} | {v['final']['ssim']:.4f} "
                      f"| {reach} | {v['render_seconds_per_image']:.2f} | {v['peak_memory_mb']:.0f} "
-                     f"| {v['model_size_mb']:.1f} |")
+                     f"| {v['model_size_mb']:.1f} |" + (shape if geometry else ""))
+    if geometry:
+        lines += ["", f"Geometry: each variant's mesh (eval --geometry, resolution {geometry['mesh_resolution']}) "
+                      f"against the scene's true surface ({geometry['truth']}); Chamfer distance in the dataset's "
+                      f"units; F-score at τ = {geometry['tau']:.4g}, {geometry['tau_rule']}."]
+        lines += [f"- {v['name']}: no geometry: {v['final']['geometry_unavailable']}"
+                  for v in report["variants"] if v["final"].get("geometry_unavailable")]
     if report.get("ablation_order"):
         lines += ["", "Ablations against the NeRF paper's order (its Table 2):", ""]
         for check in report["ablation_order"]:

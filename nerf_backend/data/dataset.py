@@ -320,15 +320,16 @@ def load_split(dataset_dir: Path | str, split: str) -> DatasetSplit:
 
 
 @dataclass
-class CameraPath:
-    """Cameras without images: what to render (e.g. the Blender add-on's active camera)."""
+class StillCameras:
+    """Cameras without images that share one set of intrinsics: what to render (e.g. the
+    Blender add-on's active camera)."""
 
     intrinsics: Intrinsics
     poses: Tensor  # [N, 4, 4] camera-to-world
     stems: list[str]
 
 
-def load_cameras(json_path: Path | str) -> CameraPath:
+def load_cameras(json_path: Path | str) -> StillCameras:
     """Cameras from a transforms JSON that needs no images: it must give the image size
     (``w``, ``h``) and the intrinsics; frames may name their output (``file_path``, whose
     stem names the render; two frames may not name the same one)."""
@@ -352,7 +353,68 @@ def load_cameras(json_path: Path | str) -> CameraPath:
             raise DatasetError(f"{json_path}: frames {seen[stem]} and {index} would both render to {stem}.png")
         seen[stem] = index
         stems.append(stem)
-    return CameraPath(read_intrinsics(data, json_path, width, height), torch.from_numpy(np.stack(poses)).float(), stems)
+    return StillCameras(read_intrinsics(data, json_path, width, height), torch.from_numpy(np.stack(poses)).float(), stems)
+
+
+@dataclass
+class AnimationFrame:
+    frame: int  # Blender's frame number
+    stem: str  # the file name of its images
+    intrinsics: Intrinsics  # this frame's own (the lens may be animated)
+    pose: Tensor  # [4, 4] camera-to-world in the NeRF frame
+    cycles_path: Path | None  # Cycles' render of the frame, when one was asked for
+
+
+@dataclass
+class CameraAnimation:
+    """A camera path written by datasets_gen (``--camera-path``) or the add-on: per frame a
+    pose and exact intrinsics, one image size, and the scene's frame rate."""
+
+    path: Path
+    camera: str
+    fps: float
+    frames: list[AnimationFrame]
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.frames[0].intrinsics.width, self.frames[0].intrinsics.height
+
+
+def load_camera_animation(json_path: Path | str) -> CameraAnimation:
+    """A camera-path JSON (``camera_path.json``): every problem is a DatasetError naming it."""
+    json_path = Path(json_path)
+    data = _read_json(json_path)
+    frames = _frames(data, json_path)
+    fps = _finite_number(data, "fps", json_path)
+    result, seen = [], set()
+    for index, entry in enumerate(frames):
+        if not isinstance(entry, dict):
+            raise DatasetError(f"{json_path}: frame {index} is not an object")
+        number = entry.get("frame")
+        if not isinstance(number, int) or isinstance(number, bool):
+            raise DatasetError(f"{json_path}: frame {index} needs its frame number 'frame' as a whole number")
+        stem = f"{number:04d}"
+        if stem in seen:
+            raise DatasetError(f"{json_path}: frame {number} is listed twice")
+        seen.add(stem)
+        where = f"{json_path} frame {number}"
+        for key in ("w", "h", "fl_x", "fl_y", "cx", "cy"):
+            if key not in entry:
+                raise DatasetError(f"{where}: needs the intrinsics w, h, fl_x, fl_y, cx, cy (missing '{key}')")
+        width, height = _image_side(entry, "w", json_path), _image_side(entry, "h", json_path)
+        cycles = entry.get("cycles_file_path")
+        if cycles is not None and (not isinstance(cycles, str) or not cycles):
+            raise DatasetError(f"{where}: 'cycles_file_path' {_show(cycles)} is not a file name")
+        result.append(AnimationFrame(
+            number, stem, read_intrinsics(entry, json_path, width, height),
+            torch.from_numpy(_pose(entry, index, json_path)).float(),
+            _inside(json_path.parent, cycles, "cycles_file_path", index, json_path) if cycles else None))
+    sizes = {(f.intrinsics.width, f.intrinsics.height) for f in result}
+    if len(sizes) > 1:
+        raise DatasetError(f"{json_path}: frames differ in size ({sorted(sizes)}); a video keeps one size")
+    camera = data.get("camera")
+    return CameraAnimation(json_path, camera if isinstance(camera, str) else json_path.parent.name, fps,
+                           sorted(result, key=lambda f: f.frame))
 
 
 def load_scene_profile(dataset_dir: Path | str) -> dict | None:

@@ -84,7 +84,8 @@ def extract_mesh(density_fn: DensityFn, colour_fn: ColourFn, box: SceneBounds, r
     level = default_threshold(render_step or spacing[0]) if threshold is None else threshold
     if not volume.min() < level < volume.max():
         raise NerfError(f"mesh: no surface at density {level:g}: the density inside the box ranges "
-                        f"{volume.min():g} to {volume.max():g}; give --threshold within that range")
+                        f"{volume.min():g} to {volume.max():g}; give a threshold within that range (mesh --threshold, "
+                        "eval --geometry --mesh-threshold)")
     vertices, faces, normals, _ = marching_cubes(volume, level, spacing=spacing)
     vertices = torch.from_numpy(vertices.astype(np.float64)) + torch.tensor(box.box_min, dtype=torch.float64)
     # scikit-image winds faces clockwise seen from the denser side's outside; Blender's front
@@ -157,6 +158,26 @@ def write_obj(path: Path, mesh: Mesh) -> None:
 MESH_WRITERS = {".ply": write_ply, ".obj": write_obj}
 
 
+def run_mesh(run: RunFolder, device: torch.device, resolution: int = 256,
+             threshold: float | None = None) -> tuple[Mesh, dict]:
+    """The run's latest checkpoint as a mesh in the NeRF frame (the dataset's), and how it was
+    extracted: what ``mesh`` writes and ``eval --geometry`` scores."""
+    if resolution < 8:
+        raise NerfError(f"mesh: resolution {resolution}: at least 8 vertices along the box's longest side")
+    model, ray_bounds, state = load_trained_model(run, device)
+    box = ray_bounds.box if ray_bounds.box is not None else PROTOCOL_BOX
+    render_step = getattr(model, "step", None)  # a marched model's step along each ray
+    mesh = extract_mesh(model.density_at, model.colour_at, box, resolution, threshold, device, render_step)
+    voxel = max(hi - lo for lo, hi in zip(box.box_min, box.box_max)) / (resolution - 1)
+    return mesh, {
+        "iteration": state["iteration"], "vertices": len(mesh.vertices), "faces": len(mesh.faces),
+        "resolution": resolution, "voxel_size": voxel, "box": {"min": list(box.box_min), "max": list(box.box_max)},
+        "threshold": threshold if threshold is not None else default_threshold(render_step or voxel),
+        "threshold_rule": "given" if threshold is not None else
+        f"ln 2 / step: the density at which one render step ({render_step or voxel:.5g}) is half opaque",
+    }
+
+
 def mesh_run(run: RunFolder, out: Path, device: torch.device, resolution: int = 256,
              threshold: float | None = None, overwrite: bool = False) -> dict:
     """The run's latest checkpoint as a mesh file (``.ply`` or ``.obj``) in Blender's world
@@ -166,25 +187,11 @@ def mesh_run(run: RunFolder, out: Path, device: torch.device, resolution: int = 
     record_path = out.with_name(out.name + ".json")
     if (out.exists() or record_path.exists()) and not overwrite:
         raise NerfError(f"{out}: exists; pass --overwrite to replace it")
-    if resolution < 8:
-        raise NerfError(f"mesh: --resolution {resolution}: at least 8 vertices along the box's longest side")
-    model, ray_bounds, state = load_trained_model(run, device)
-    stored = run.read_config()
-    box = ray_bounds.box if ray_bounds.box is not None else PROTOCOL_BOX
-    render_step = getattr(model, "step", None)  # a marched model's step along each ray
-    mesh = extract_mesh(model.density_at, model.colour_at, box, resolution, threshold, device, render_step)
-    profile = load_scene_profile(stored["dataset"])
+    mesh, how = run_mesh(run, device, resolution, threshold)
+    profile = load_scene_profile(run.read_config()["dataset"])
     mesh = to_blender_world(mesh, profile.get("world_to_nerf") if profile else None)
     out.parent.mkdir(parents=True, exist_ok=True)
     MESH_WRITERS[out.suffix.lower()](out, mesh)
-    voxel = max(hi - lo for lo, hi in zip(box.box_min, box.box_max)) / (resolution - 1)
-    record = {
-        "mesh": str(out), "iteration": state["iteration"], "vertices": len(mesh.vertices), "faces": len(mesh.faces),
-        "resolution": resolution, "voxel_size": voxel, "box": {"min": list(box.box_min), "max": list(box.box_max)},
-        "threshold": threshold if threshold is not None else default_threshold(render_step or voxel),
-        "threshold_rule": "given" if threshold is not None else
-        f"ln 2 / step: the density at which one render step ({render_step or voxel:.5g}) is half opaque",
-        "frame": "Blender world (the inverse of the dataset's world_to_nerf)",
-    }
+    record = {"mesh": str(out), **how, "frame": "Blender world (the inverse of the dataset's world_to_nerf)"}
     write_json(record_path, record)
     return record

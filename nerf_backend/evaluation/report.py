@@ -4,8 +4,9 @@ Cycles ground truth.
 ``report RUN`` writes ``RUN/report/index.html`` with its images beside it (no network, no
 external scripts or styles): the headline metrics and what the run cost, the scene
 decisions ``auto`` made, every test view (ground truth, render, error heatmap, metrics;
-sortable, worst first; click a picture for full size), the training curves, and the bench
-results when the run sits inside a bench folder. ``report A B ...`` compares several
+sortable, worst first; click a picture for full size), the training curves, the geometry
+scores when ``eval --geometry`` measured the run, and the bench results when the run sits
+inside a bench folder. ``report A B ...`` compares several
 results on the same dataset: metrics side by side and the same views from each. A result
 is a run folder, or a folder of another tool's renders scored by
 ``eval --dataset D --renders DIR`` (its ``metrics.json`` says which dataset).
@@ -24,8 +25,11 @@ from ..core.errors import NerfError
 from ..data.dataset import load_split
 from ..data.run_folder import RunFolder
 from ..metrics.registry import METRICS, Metric
+from .animation import FRAME_METRICS
+from .animation import RECORD_NAME as ANIMATION_RECORD
 from .error_images import error_heatmap
 from .evaluate import METRICS_NAME, evaluate_run, read_rgb
+from .geometry_eval import GEOMETRY_NAME, GEOMETRY_PICTURE, GEOMETRY_SCORES
 from .inference import renders_are_current
 from .report_page import MARKER, ReportPage
 from .report_plots import plot_error_scale, plot_training
@@ -214,6 +218,61 @@ def _bench_section(page: ReportPage, bench_json: Path) -> str:
     return "\n".join(out)
 
 
+def _geometry_section(page: ReportPage, run: Path, prefix: str) -> str:
+    """The run's surface against the scene's true one, as ``eval --geometry`` measured it."""
+    geometry = json.loads((run / GEOMETRY_NAME).read_text())
+    mesh, truth = geometry["mesh"], geometry["truth"]
+    out = ["<h3>Geometry against the scene's true surface</h3>",
+           '<table><tr><th>score</th><th class="num">value</th></tr>']
+    out += [f"<tr><td>{html.escape(label)}</td><td class=num>{_fmt(geometry.get(key), f'.{decimals}f')}</td></tr>"
+            for key, label, decimals in GEOMETRY_SCORES]
+    out.append("</table>")
+    if (run / GEOMETRY_PICTURE).is_file():
+        picture = page.image(f"{prefix}_geometry.png", source=run / GEOMETRY_PICTURE)
+        out.append(page.figure(picture, "the NeRF's surface coloured by its distance to the truth (grey)", kind="wide"))
+    notes = [f"τ = {geometry['tau']:.4g} {geometry['units']}: {geometry['tau_rule']}.",
+             f"The mesh of iteration {mesh['iteration']} at resolution {mesh['resolution']}, density "
+             f"{mesh['threshold']:.4g} ({mesh['threshold_rule']}); {geometry['samples']['nerf']:,} points on the NeRF's "
+             f"surface and {geometry['samples']['truth']:,} on the truth, {geometry['sampling']}.",
+             f"Truth: {truth['file']} ({truth['triangles']} triangles)."]
+    notes += [f"Left out of the truth: {entry}." for entry in truth["left_out"]]
+    out.append("".join(f'<p class="muted">{html.escape(n)}</p>' for n in notes))
+    return "\n".join(out)
+
+
+def _animation_sections(page: ReportPage, run: Path, prefix: str) -> str:
+    """Each camera animation rendered with the run (``render --camera-path``): its video (side
+    by side with Cycles when compared), the per-frame scores and their plot."""
+    out = []
+    for record_path in sorted((run / "animation").glob(f"*/{ANIMATION_RECORD}")):
+        record = json.loads(record_path.read_text())
+        if record.get("video") is None:
+            continue  # not finished
+        folder, name = record_path.parent, record_path.parent.name
+        compared = record.get("side_by_side_video") is not None
+        video = page.image(f"{prefix}_{name}.mp4", source=folder / ("side_by_side.mp4" if compared else "nerf.mp4"))
+        width, height = record["size"]
+        speed = _fmt(record.get("seconds_per_frame"), ".2f")
+        out.append(f"<h3>Animation: {html.escape(record['camera'])}</h3>"
+                   f'<video controls loop muted preload="metadata" src="{video}" class="wide"></video>'
+                   f'<p class="muted">{len(record["frames"])} frames (Blender frames {record["frames"][0]}–'
+                   f'{record["frames"][-1]}) at {width}×{height}, {record["fps"]:g} fps; {speed} s a frame on '
+                   f'{html.escape(record["device"])} at iteration {record["iteration"]}.'
+                   + (" Left to right: Cycles, NeRF, error." if compared else "") + "</p>")
+        if compared:
+            metrics = json.loads((folder / "frame_metrics.json").read_text())
+            out.append('<table><tr><th>against Cycles</th>' + "".join(
+                f'<th class="num">{html.escape(_metric_header(m))}</th>' for m in FRAME_METRICS) + "</tr>")
+            worst = min(metrics["frames"], key=lambda f: f["psnr"])
+            for label, values in (("mean of the frames", metrics["mean"]), (f"worst frame ({worst['frame']})", worst)):
+                out.append(f"<tr><td>{label}</td>" + "".join(
+                    f"<td class=num>{html.escape(m.format(values.get(m.key)))}</td>" for m in FRAME_METRICS) + "</tr>")
+            out.append("</table>")
+            plot = page.image(f"{prefix}_{name}_metrics.png", source=folder / "frame_metrics.png")
+            out.append(page.figure(plot, "PSNR and SSIM of each frame against Cycles", kind="wide"))
+    return "\n".join(out)
+
+
 def _comparison(page: ReportPage, results: list[Result], split) -> str:
     out = ["<h2>Runs compared</h2>", '<table><tr><th>result</th><th>preset</th><th class="num">iterations</th>'
            f'<th class="num">training s</th>{_metric_headers()}'
@@ -289,6 +348,10 @@ def write_report(paths: list[Path], out_dir: Path | None = None, split: str = "t
                  f'<p class="muted">Click a column heading to sort; click a picture for full size. Error heatmap scale:</p>'
                  f'<img src="{scale}" alt="error scale">')
         page.add(_views_table(page, result, f"r{k}", dataset_split))
+        if result.run_config is not None and (result.path / GEOMETRY_NAME).is_file():
+            page.add(_geometry_section(page, result.path, f"r{k}"))
+        if result.run_config is not None:
+            page.add(_animation_sections(page, result.path, f"r{k}"))
         bench = _find_bench(result.path) if result.run_config is not None else None
         if bench is not None:
             page.add(_bench_section(page, bench))

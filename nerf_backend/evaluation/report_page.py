@@ -21,7 +21,7 @@ table { border-collapse: collapse; margin: 0.5em 0; } td, th { padding: 0.25em 0
 th.sortable { cursor: pointer; color: #0645ad; } .num { text-align: right; font-variant-numeric: tabular-nums; }
 .headline { display: flex; gap: 1em; flex-wrap: wrap; } .card { background: #f4f6f8; padding: 0.6em 1em; border-radius: 6px; }
 .card b { display: block; font-size: 1.4em; } .muted { color: #666; font-size: 0.9em; }
-img.wide { width: 100%; max-width: 900px; display: block; }
+img.wide, video.wide { width: 100%; max-width: 900px; display: block; }
 img.thumb { width: 128px; height: auto; image-rendering: pixelated; border: 1px solid #ddd; display: block; }
 figure { margin: 0; } figcaption { font-size: 0.75em; color: #555; }
 .alert { background: #fdecea; border-left: 4px solid #c0392b; padding: 0.5em 1em; margin: 1em 0; }

@@ -1,4 +1,5 @@
-"""The report's pictures drawn with matplotlib: training curves and the error colour scale."""
+"""The report's pictures drawn with matplotlib: training curves, the error colour scale, and the
+NeRF's surface coloured by its distance to the true one."""
 
 from __future__ import annotations
 
@@ -56,3 +57,35 @@ def plot_training(events: list[dict], path: Path) -> bool:
     figure.savefig(path)
     plt.close(figure)
     return True
+
+
+# Orthographic views of the NeRF frame (z up): (title, horizontal axis, vertical axis, the axis
+# the view looks along, the side of it the viewer stands on).
+SURFACE_VIEWS = (("front (from −y)", 0, 2, 1, -1.0), ("side (from +x)", 1, 2, 0, 1.0), ("top (from +z)", 0, 1, 2, 1.0))
+SURFACE_ERROR_SCALE = 3.0  # colours run to this many τ
+
+
+def plot_surface_error(path: Path, points: np.ndarray, distances: np.ndarray, true_points: np.ndarray,
+                       tau: float) -> None:
+    """The NeRF's surface ``points`` coloured by their ``distances`` to the truth (up to 3 τ),
+    drawn far to near over the truth's points in grey, from three orthographic views."""
+    plt = pyplot()
+
+    figure, axes = plt.subplots(1, len(SURFACE_VIEWS), figsize=(12, 4.2), dpi=110, layout="constrained")
+    low = np.minimum(points.min(axis=0), true_points.min(axis=0))
+    high = np.maximum(points.max(axis=0), true_points.max(axis=0))
+    for axis, (title, u, v, depth, viewer) in zip(axes, SURFACE_VIEWS):
+        axis.scatter(true_points[:, u], true_points[:, v], s=0.4, c="#cfcfcf", linewidths=0, rasterized=True)
+        order = np.argsort(viewer * points[:, depth])  # the farthest first: nearer points cover them
+        shown = axis.scatter(points[order, u], points[order, v], s=1.0, c=distances[order] / tau, cmap="plasma",
+                             vmin=0.0, vmax=SURFACE_ERROR_SCALE, linewidths=0, rasterized=True)
+        axis.set_xlim(low[u], high[u])
+        axis.set_ylim(low[v], high[v])
+        axis.set_aspect("equal")
+        axis.set_title(title, fontsize=9)
+        axis.set_xticks([])
+        axis.set_yticks([])
+    bar = figure.colorbar(shown, ax=list(axes), shrink=0.8)
+    bar.set_label(f"distance of the NeRF's surface to the truth, in τ = {tau:.4g}; grey: the truth", fontsize=8)
+    figure.savefig(path)
+    plt.close(figure)

@@ -151,6 +151,77 @@ report["compare_gpu"]["scene_settings_kept"] = scene_settings() == settings_befo
 settings.render_device = "CPU"
 save()
 
+# The active camera's animation: three keyed poses (frames 1-3), Cycles' frames and the NeRF's,
+# as a job; the finished video in an image and a sequencer strip.
+scene = bpy.context.scene
+for frame, x in ((1, -0.2), (2, 0.0), (3, 0.2)):
+    camera.location.x = matrix.translation.x + x
+    camera.keyframe_insert("location", index=0, frame=frame)
+scene.frame_start, scene.frame_end = 1, 3
+scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 40, 30, 100
+settings.animation_cycles, settings.animation_sequencer = True, True
+report["animation"] = {"result": sorted(bpy.ops.nerf.render_animation()), "states": []}
+folder = str(paths.animation_dir(bpy.context))
+deadline = time.time() + 600
+while time.time() < deadline:
+    again = job_timer._tick()
+    state = job_timer.status[folder]
+    report["animation"]["states"].append([state.state, round(state.fraction, 3), state.detail])
+    if again is None:
+        break
+    time.sleep(again)
+report["animation"]["final"] = {"state": state.state, "detail": state.detail, "error": state.error,
+                                "warning": state.warning, "shown": state.extra.get("shown")}
+save()
+
+# The NeRF's surface as a mesh over the original: its bounds, and where rays from outside hit it.
+from mathutils.bvhtree import BVHTree  # noqa: E402
+
+settings.mesh_resolution = 96
+originals = [obj for obj in scene.objects if obj.type == "MESH" and obj.visible_get()]
+report["mesh"] = {"result": sorted(bpy.ops.nerf.import_mesh())}
+nerf_mesh = bpy.data.objects.get("NeRF mesh")
+
+
+def world_bounds(objects) -> list[list[float]]:
+    corners = [obj.matrix_world @ mathutils.Vector(corner) for obj in objects for corner in obj.bound_box]
+    return [[min(c[i] for c in corners) for i in range(3)], [max(c[i] for c in corners) for i in range(3)]]
+
+
+def scene_tree(objects) -> BVHTree:
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    vertices, polygons = [], []
+    for obj in objects:
+        mesh = obj.evaluated_get(depsgraph).to_mesh()
+        offset = len(vertices)
+        vertices += [obj.matrix_world @ v.co for v in mesh.vertices]
+        polygons += [[offset + i for i in p.vertices] for p in mesh.polygons]
+        obj.evaluated_get(depsgraph).to_mesh_clear()
+    return BVHTree.FromPolygons(vertices, polygons)
+
+
+if nerf_mesh is not None:
+    truth, ours = world_bounds(originals), world_bounds([nerf_mesh])
+    radius = (mathutils.Vector(truth[1]) - mathutils.Vector(truth[0])).length / 2
+    truth_tree, our_tree = scene_tree(originals), scene_tree([nerf_mesh])
+    hits = []  # rays from outside aimed at each object's centre, from five sides
+    for obj in originals:
+        low, high = world_bounds([obj])
+        target = (mathutils.Vector(low) + mathutils.Vector(high)) / 2
+        for direction in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1)):
+            d = mathutils.Vector(direction)
+            origin = target + 3 * radius * d
+            a, b = truth_tree.ray_cast(origin, -d), our_tree.ray_cast(origin, -d)
+            hits.append([None if a[0] is None else (a[0] - origin).length,
+                         None if b[0] is None else (b[0] - origin).length])
+    material = nerf_mesh.active_material
+    report["mesh"].update(bounds_truth=truth, bounds_nerf=ours, radius=radius, hits=hits,
+                          vertices=len(nerf_mesh.data.vertices),
+                          colour_attributes=[a.name for a in nerf_mesh.data.color_attributes],
+                          material=material.name if material else None,
+                          material_nodes=sorted(n.bl_idname for n in material.node_tree.nodes) if material else [])
+save()
+
 # The report, written by the backend and opened (where there is a browser; none here).
 report["open_report"] = {"result": sorted(bpy.ops.nerf.open_report()),
                          "page": (WORK / "run" / "report" / "index.html").is_file()}

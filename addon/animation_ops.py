@@ -1,0 +1,148 @@
+"""Render Camera Animation (the NeRF along the scene camera's animation, beside Cycles' frames),
+its Cancel, and Import NeRF Mesh. The animation runs in other processes like training (a
+background Blender renders Cycles' frames, then the backend renders the NeRF's); when it is
+done the video is loaded into an Image Editor and, if asked, into the Video Sequencer."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import bpy
+
+from . import sources
+from .backend_setup import check_backend
+from .job_timer import animation_job, ensure_timer
+from .paths import backend_python, dataset_dir, run_dir, settings
+from .results_ops import _reporting_backend_errors, run_backend
+
+MESH_MATERIAL = "NeRF mesh vertex colours"
+
+
+def scene_frames(context) -> range:
+    scene = context.scene
+    return range(scene.frame_start, scene.frame_end + 1, max(1, settings(context).animation_step))
+
+
+class NERF_OT_render_animation(bpy.types.Operator):
+    """Render the trained NeRF along the scene camera's animation (the scene's frame range) as a
+    video, beside Cycles' frames if asked; runs in the background"""
+
+    bl_idname = "nerf.render_animation"
+    bl_label = "Render Camera Animation"
+
+    @_reporting_backend_errors
+    def execute(self, context):
+        s, scene = settings(context), context.scene
+        python = backend_python(context)
+        ok, message = check_backend(python)
+        if not ok:
+            raise RuntimeError(message)
+        if not (run_dir(context) / "checkpoint.pt").is_file():
+            raise RuntimeError(f"{run_dir(context)}: no trained run yet; train first")
+        if scene.camera is None or scene.camera.type != "CAMERA":
+            raise RuntimeError("the scene needs an active camera: its animation is what is rendered")
+        job = animation_job(context)
+        if job.is_running():
+            raise RuntimeError("this animation is already being rendered")
+        export = sources.datasets_gen("camera_path_export")
+        frames = scene_frames(context)
+        dataset = dataset_dir(context)
+        path_dir = Path(export.path_folder(str(dataset), scene.camera.name))
+        path_json = path_dir / "camera_path.json"
+        frame_text = f"{frames.start}:{frames.stop - 1}:{frames.step}"
+        stages = []
+        if s.animation_cycles and bpy.app.binary_path:
+            copy = job.folder.with_name(job.folder.name + ".scene.blend")  # the scene as it is now
+            copy.parent.mkdir(parents=True, exist_ok=True)
+            bpy.ops.wm.save_as_mainfile(filepath=str(copy), copy=True, check_existing=False)
+            script = sources.source_root() / "datasets_gen" / "generate.py"
+            # --overwrite: a changed animation replaces its stale Cycles frames; unchanged ones are kept.
+            stages.append(("cycles", [bpy.app.binary_path, "-b", str(copy), "--python", str(script), "--",
+                                      "--out", str(dataset), "--camera-path", scene.camera.name, "--frames", frame_text,
+                                      "--cycles", "--device", s.render_device, "--overwrite", "--no-progress"]))
+        else:  # the path alone is quick; without a Blender binary (the bpy module) Cycles renders here
+            self._export_here(context, export, dataset, frames, s.animation_cycles)
+        command = [python, "-m", "nerf_backend", "render", str(run_dir(context)), "--camera-path", str(path_json),
+                   "--out", str(job.folder), "--device", s.train_device, "--no-progress"]
+        stages.append(("nerf", command + (["--cycles"] if s.animation_cycles else [])))
+        env = dict(os.environ, PYTHONPATH=str(sources.source_root()), PYTHONUNBUFFERED="1")
+        job.start(path_json, len(frames), stages, env=env, cycles=s.animation_cycles)
+        ensure_timer()
+        self.report({"INFO"}, f"rendering {len(frames)} frames of {scene.camera.name!r} into {job.folder}")
+        return {"FINISHED"}
+
+    @staticmethod
+    def _export_here(context, export, dataset: Path, frames: range, cycles: bool) -> None:
+        window_manager = context.window_manager
+        window_manager.progress_begin(0, 1)
+        try:
+            export.export_camera_path(str(dataset), context.scene.camera.name, frames, scene=context.scene,
+                                      cycles=cycles, overwrite=True, device=settings(context).render_device,
+                                      progress=False)
+        finally:
+            window_manager.progress_end()
+
+
+class NERF_OT_cancel_animation(bpy.types.Operator):
+    """Stop rendering the animation (rendering it again keeps the frames already made)"""
+
+    bl_idname = "nerf.cancel_animation"
+    bl_label = "Cancel"
+
+    def execute(self, context):
+        animation_job(context).cancel()
+        return {"FINISHED"}
+
+
+class NERF_OT_import_mesh(bpy.types.Operator):
+    """Extract the trained NeRF's surface (marching cubes) and add it to the scene, over the
+    original, with its colours"""
+
+    bl_idname = "nerf.import_mesh"
+    bl_label = "Import NeRF Mesh"
+
+    @_reporting_backend_errors
+    def execute(self, context):
+        s = settings(context)
+        run = run_dir(context)
+        out = run / "mesh" / f"nerf_mesh_{s.mesh_resolution}.ply"
+        out.parent.mkdir(parents=True, exist_ok=True)
+        run_backend(context, "mesh", str(run), "--out", str(out), "--resolution", str(s.mesh_resolution),
+                    "--device", s.train_device, "--overwrite")
+        obj = import_mesh(context, out)
+        self.report({"INFO"}, f"imported {obj.name}: {len(obj.data.vertices)} vertices from {out}")
+        return {"FINISHED"}
+
+
+def import_mesh(context, path: Path):
+    """The PLY as a new object (in Blender's world already: the backend undid world_to_nerf)
+    with a material showing its vertex colours."""
+    before = set(bpy.data.objects)
+    bpy.ops.wm.ply_import(filepath=str(path))
+    new = [obj for obj in bpy.data.objects if obj not in before]
+    if len(new) != 1:
+        raise RuntimeError(f"{path}: the PLY importer made {len(new)} objects")
+    obj = new[0]
+    obj.name = "NeRF mesh"
+    attributes = getattr(obj.data, "color_attributes", None)
+    colour = attributes[0].name if attributes else "Col"
+    obj.data.materials.clear()
+    obj.data.materials.append(_vertex_colour_material(colour))
+    return obj
+
+
+def _vertex_colour_material(attribute: str):
+    material = bpy.data.materials.get(MESH_MATERIAL) or bpy.data.materials.new(MESH_MATERIAL)
+    tree = sources.datasets_gen("blender_compat").node_tree_of(material)
+    tree.nodes.clear()
+    colour = tree.nodes.new("ShaderNodeVertexColor")
+    colour.layer_name = attribute
+    emission = tree.nodes.new("ShaderNodeEmission")  # the NeRF's colours already hold the scene's lighting
+    output = tree.nodes.new("ShaderNodeOutputMaterial")
+    tree.links.new(colour.outputs["Color"], emission.inputs["Color"])
+    tree.links.new(emission.outputs["Emission"], output.inputs["Surface"])
+    return material
+
+
+CLASSES = (NERF_OT_render_animation, NERF_OT_cancel_animation, NERF_OT_import_mesh)

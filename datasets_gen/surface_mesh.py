@@ -1,0 +1,78 @@
+"""The scene's true surface as a file: its renderable triangles in the NeRF frame, welded into a
+mesh and written as binary PLY (`scene_geometry.ply`), so that a NeRF's geometry can be measured
+against it (the backend's `eval --geometry`).
+
+The triangles are the occupancy prior's (scene_occupancy.collect_parts: evaluated, after
+modifiers and instancing, only what renders to the camera), so the scene is walked once for
+both.  What to_mesh cannot measure (hair curves, point clouds, volumes, displacement that cannot
+be read) is left out, and the profile's record says so; geometry that renders beyond its mesh
+(particle hair, readable displacement) is in the file as its mesh, and the record names it.
+
+numpy only, no bpy (the generator imports this module only when numpy is there).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .output_dir import GEOMETRY_NAME, write_file_atomic
+
+FRAME = "NeRF frame: p_nerf = scale * p_blender + translation (world_to_nerf)"
+
+
+def weld(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices [V, 3] float32, faces [T, 3] int32) of triangles [T, 3, 3]: corners that are
+    the same point (as float32) become one vertex, so the file is a connected mesh.
+
+    The order is canonical (vertices sorted; each face turned to start at its lowest vertex, its
+    winding kept; faces sorted): Blender lists an n-gon's triangles in an order that varies from
+    run to run, and the same scene must give the same file (shards, --resume).
+
+    >>> square = np.array([[[0, 0, 0], [1, 0, 0], [1, 1, 0]], [[1, 1, 0], [0, 1, 0], [0, 0, 0]]], float)
+    >>> vertices, faces = weld(square)
+    >>> vertices.tolist(), faces.tolist()
+    ([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0]], [[0, 2, 3], [0, 3, 1]])
+    """
+    corners = np.ascontiguousarray(triangles, dtype=np.float32).reshape(-1, 3)
+    vertices, index = np.unique(corners, axis=0, return_inverse=True)
+    faces = index.reshape(-1, 3)
+    turn = (faces.argmin(axis=1)[:, None] + np.arange(3)) % 3
+    faces = np.take_along_axis(faces, turn, axis=1)
+    return vertices, faces[np.lexsort(faces.T[::-1])].astype(np.int32)
+
+
+def ply_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
+    """A binary little-endian PLY of float xyz vertices and triangle faces."""
+    face = np.empty(len(faces), dtype=[("count", "u1"), ("indices", "<i4", (3,))])
+    face["count"] = 3
+    face["indices"] = faces
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment the scene's renderable triangles, {FRAME}\n"
+              f"element vertex {len(vertices)}\nproperty float x\nproperty float y\nproperty float z\n"
+              f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
+    return header.encode("ascii") + np.ascontiguousarray(vertices, dtype="<f4").tobytes() + face.tobytes()
+
+
+def write_ply_atomic(path: str, vertices: np.ndarray, faces: np.ndarray) -> None:
+    write_file_atomic(path, lambda handle: handle.write(ply_bytes(vertices, faces)))
+
+
+def geometry_record(triangle_count: int, vertex_count: int, left_out: dict[str, str],
+                    beyond_mesh: dict[str, tuple[float, str]]) -> dict[str, Any]:
+    """The profile's `geometry` entry: the file, its size and frame, and what it does not hold
+    exactly (objects left out, with why; objects that render beyond their mesh, by how much).
+
+    >>> record = geometry_record(12, 8, {"Strands": "a CURVES object"}, {"Hairy": (0.25, "hair length 0.5")})
+    >>> record["file"], record["left_out"], record["beyond_mesh"]
+    ('scene_geometry.ply', ['Strands: a CURVES object'], ['Hairy: up to 0.25 NeRF units: hair length 0.5'])
+    """
+    return {
+        "file": GEOMETRY_NAME,
+        "triangles": triangle_count,
+        "vertices": vertex_count,
+        "frame": FRAME,
+        "left_out": [f"{name}: {why}" for name, why in sorted(left_out.items())],
+        "beyond_mesh": [f"{name}: up to {margin:.4g} NeRF units: {why}"
+                        for name, (margin, why) in sorted(beyond_mesh.items())],
+    }
