@@ -1,7 +1,8 @@
 """``python -m nerf_backend.demo`` (what ``make demo`` runs): the product end to end on the
 built-in demo scene — Blender renders a dataset, a NeRF trains on it, renders the test
-views, is scored against Cycles, and the comparison report is written. Each stage's wall
-time is printed at the end.
+views, is scored against Cycles (images, and its surface against the scene's own), renders
+the scene camera's animation beside Cycles' frames, and the comparison report is written.
+Each stage's wall time is printed at the end.
 
 Re-running reuses what is done: a complete dataset is kept, a finished run is resumed
 (a no-op once its budget is spent), stale renders are redone. The dataset is rendered by
@@ -18,8 +19,10 @@ import time
 from pathlib import Path
 
 from .data.run_folder import RunFolder
+from .evaluation.geometry_eval import geometry_line
 
 SPLITS = ("train", "val", "test")
+DEMO_CAMERA = "turntable camera"  # the demo scene's animated camera (datasets_gen/demo_scene.py)
 
 
 def _stage(name: str, command: list[str], timings: dict[str, float]) -> None:
@@ -49,6 +52,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--train-seconds", type=float, default=None,
                         help="also stop training after this many seconds (the summary says when it did)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--animation-frames", default="1:48:4", metavar="S:E[:STEP]",
+                        help="frames of the demo's turntable camera (800×600) rendered by Cycles and the NeRF")
     args = parser.parse_args(argv)
 
     dataset, run = args.out / "dataset", args.out / "run"
@@ -72,7 +77,17 @@ def main(argv: list[str] | None = None) -> int:
         train += ["--max-seconds", str(args.train_seconds)]
     train += ["--resume"] if (run / "config.json").exists() else ["--preset", args.preset]
     _stage("train", train, timings)
-    _stage("render + eval", [python, "-m", "nerf_backend", "eval", str(run), "--split", "test"], timings)
+    evaluate = [python, "-m", "nerf_backend", "eval", str(run), "--split", "test"]
+    if (dataset / "scene_geometry.ply").is_file():
+        evaluate.append("--geometry")
+    else:  # a dataset from before datasets_gen wrote the scene's surface
+        print(f"== note: {dataset} has no scene_geometry.ply (made before datasets_gen wrote it): no geometry scores")
+    _stage("render + eval", evaluate, timings)
+    _stage("camera path", [python, "-m", "datasets_gen", "--demo", "--out", str(dataset), "--camera-path",
+                           DEMO_CAMERA, "--frames", args.animation_frames, "--cycles"], timings)
+    path = dataset / "camera_paths" / DEMO_CAMERA.replace(" ", "_") / "camera_path.json"
+    _stage("animation", [python, "-m", "nerf_backend", "render", str(run), "--camera-path", str(path), "--cycles"],
+           timings)
     _stage("report", [python, "-m", "nerf_backend", "report", str(run)], timings)
 
     metrics = json.loads((run / "metrics.json").read_text())
@@ -90,6 +105,15 @@ def main(argv: list[str] | None = None) -> int:
              else "LPIPS unavailable (no AlexNet weights here; see the report)")
     print(f"   mean test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {lpips} "
           f"over {metrics['views']} views ({run / 'metrics.json'})")
+    geometry = run / "geometry.json"
+    if geometry.is_file():
+        print(f"   {geometry_line(json.loads(geometry.read_text()))}")
+    animation = json.loads((run / "animation" / path.parent.name / "animation.json").read_text())
+    width, height = animation["size"]
+    seconds = animation.get("seconds_per_frame")
+    print(f"   animation: {len(animation['frames'])} frames at {width}×{height}"
+          + (f", {seconds:.2f} s a frame" if seconds is not None else "")
+          + f", PSNR {animation['mean']['psnr']:.2f} dB against Cycles: {animation['side_by_side_video']}")
     print(f"   report:  {(run / 'report' / 'index.html').resolve()}")
     return 0
 
