@@ -60,7 +60,7 @@ class NERF_OT_render_animation(bpy.types.Operator):
             # --overwrite: a changed animation replaces its stale Cycles frames; unchanged ones are kept.
             stages.append(("cycles", [bpy.app.binary_path, "-b", str(copy), "--python", str(script), "--",
                                       "--out", str(dataset), "--camera-path", scene.camera.name, "--frames", frame_text,
-                                      "--cycles", "--device", s.render_device, "--overwrite", "--no-progress"]))
+                                      "--with-cycles", "--device", s.render_device, "--overwrite", "--no-progress"]))
         else:  # the path alone is quick; without a Blender binary (the bpy module) Cycles renders here
             self._export_here(context, export, dataset, frames, s.animation_cycles)
         command = [python, "-m", "nerf_backend", "render", str(run_dir(context)), "--camera-path", str(path_json),

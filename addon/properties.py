@@ -51,9 +51,9 @@ class NerfSettings(bpy.types.PropertyGroup):
     animation_cycles: BoolProperty(name="Beside Cycles", default=True,
                                    description="Also render the frames with Cycles (the dataset's settings) and make a "
                                                "side-by-side video with PSNR and SSIM per frame")
-    animation_sequencer: BoolProperty(name="Add to Sequencer", default=False,
+    animation_sequencer: BoolProperty(name="Add Strip", default=False,
                                       description="Add the finished video to the Video Sequencer as a movie strip")
-    mesh_resolution: IntProperty(name="Mesh Resolution", default=256, min=16, max=1024,
+    mesh_resolution: IntProperty(name="Mesh Grid", default=256, min=16, max=1024,
                                  description="Grid vertices along the scene box's longest side for the NeRF mesh")
     compare_metrics: StringProperty(name="Metrics", default="", description="The metrics of the last comparison with Cycles")
 

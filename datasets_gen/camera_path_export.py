@@ -1,6 +1,6 @@
-"""`datasets_gen --camera-path CAMERA [--frames S:E[:STEP]] [--cycles] --out DATASET`: a
+"""`datasets_gen --camera-path CAMERA [--frames S:E[:STEP]] [--with-cycles] --out DATASET`: a
 camera's animation as a camera path in DATASET's NeRF frame, for
-`python -m nerf_backend render RUN --camera-path`, and (``--cycles``) the same frames
+`python -m nerf_backend render RUN --camera-path`, and (``--with-cycles``) the same frames
 rendered by Cycles with the dataset's settings, to compare the NeRF with frame by frame.
 
 Written into ``DATASET/camera_paths/CAMERA/``: ``camera_path.json`` and ``cycles/STEM.png``.

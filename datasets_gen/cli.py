@@ -3,7 +3,7 @@
     python -m datasets_gen (SCENE.blend | --demo | --builtin NAME) --out DIR [options]
     python -m datasets_gen --suite DIR [--suite-scene SCENE.blend ...] [options]
     python -m datasets_gen --merge DIR
-    python -m datasets_gen SCENE.blend --out DATASET --camera-path CAMERA [--frames S:E[:STEP]] [--cycles]
+    python -m datasets_gen SCENE.blend --out DATASET --camera-path CAMERA [--frames S:E[:STEP]] [--with-cycles]
     blender -b [SCENE.blend] --python datasets_gen/generate.py -- [SCENE.blend | --demo] --out DIR [options]
 
 `--demo` is `--builtin demo` and `--demo --demo-variant diffuse` is `--builtin demo_diffuse`.
@@ -74,7 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
                       "size, scaled by --resolution-percentage P when given")
     path.add_argument("--frames", metavar="S:E[:STEP]",
                       help="with --camera-path: the frames, both ends included (default: the scene's frame range)")
-    path.add_argument("--cycles", action="store_true",
+    # Not "--cycles": Blender's Cycles add-on parses the arguments after "--" too, and takes any
+    # prefix of its --cycles-device and --cycles-print-stats as ambiguous (the run then stops).
+    path.add_argument("--with-cycles", dest="cycles", action="store_true",
                       help="with --camera-path: also render those frames with Cycles, with the dataset's settings "
                       "(frames already rendered are kept)")
     return parser
@@ -145,7 +147,7 @@ def main(argv: Optional[Sequence[str]] = None, blender_file: str = "") -> int:
     if args.suite is not None:
         return _suite(args, parser)
     if args.camera_path is None and (args.frames is not None or args.cycles):
-        parser.error(f"argument {'--frames' if args.frames is not None else '--cycles'}: needs --camera-path CAMERA")
+        parser.error(f"argument {'--frames' if args.frames is not None else '--with-cycles'}: needs --camera-path CAMERA")
     if args.camera_path is not None:
         return _camera_path(args, parser, blender_file)
     if args.suite_scene:

@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"== note: {dataset} has no scene_geometry.ply (made before datasets_gen wrote it): no geometry scores")
     _stage("render + eval", evaluate, timings)
     _stage("camera path", [python, "-m", "datasets_gen", "--demo", "--out", str(dataset), "--camera-path",
-                           DEMO_CAMERA, "--frames", args.animation_frames, "--cycles"], timings)
+                           DEMO_CAMERA, "--frames", args.animation_frames, "--with-cycles"], timings)
     path = dataset / "camera_paths" / DEMO_CAMERA.replace(" ", "_") / "camera_path.json"
     _stage("animation", [python, "-m", "nerf_backend", "render", str(run), "--camera-path", str(path), "--cycles"],
            timings)

@@ -114,7 +114,7 @@ def turntable_path(tiny_demo_dataset, tmp_path_factory) -> Path:
     dataset.mkdir()
     shutil.copy(tiny_demo_dataset / "transforms_train.json", dataset)
     result = run_python("-m", "datasets_gen", "--demo", "--out", str(dataset), "--camera-path", "turntable camera",
-                        "--frames", "1:48:16", "--cycles", "--resolution-percentage", "5", "--no-progress")
+                        "--frames", "1:48:16", "--with-cycles", "--resolution-percentage", "5", "--no-progress")
     path = dataset / "camera_paths" / "turntable_camera" / "camera_path.json"
     assert f"wrote {path}" in result.stderr
     return path
@@ -130,7 +130,7 @@ def test_the_command_line_writes_the_path_and_keeps_its_cycles_frames(turntable_
     stamps = [p.stat().st_mtime_ns for p in cycles]
     dataset = turntable_path.parents[2]
     again = run_python("-m", "datasets_gen", "--demo", "--out", str(dataset), "--camera-path", "turntable camera",
-                       "--frames", "1:48:16", "--cycles", "--resolution-percentage", "5", "--no-progress")
+                       "--frames", "1:48:16", "--with-cycles", "--resolution-percentage", "5", "--no-progress")
     assert "kept 3 Cycles frames" in again.stdout + again.stderr
     assert [p.stat().st_mtime_ns for p in cycles] == stamps
     other = run_python("-m", "datasets_gen", "--demo", "--out", str(dataset), "--camera-path", "turntable camera",

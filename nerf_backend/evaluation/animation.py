@@ -70,11 +70,11 @@ def render_animation(run: RunFolder, path_json: Path, device: torch.device, out_
         missing = [f.frame for f in animation.frames if f.cycles_path is None]
         if missing:
             raise NerfError(f"{path_json}: --cycles: frames {missing[:5]} have no Cycles render "
-                            "(write the path with datasets_gen --camera-path CAMERA --cycles)")
+                            "(write the path with datasets_gen --camera-path CAMERA --with-cycles)")
         absent = [f.cycles_path for f in animation.frames if not f.cycles_path.is_file()]
         if absent:
             raise NerfError(f"{absent[0]}: Cycles frame not found ({len(absent)} missing); rerun datasets_gen "
-                            "--camera-path CAMERA --cycles to render them")
+                            "--camera-path CAMERA --with-cycles to render them")
     out_dir = Path(out_dir) if out_dir is not None else default_out_dir(run, path_json)
     frames_dir = out_dir / "frames"
     model, ray_bounds, state = load_trained_model(run, device)

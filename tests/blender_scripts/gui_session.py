@@ -28,6 +28,7 @@ from pathlib import Path
 
 import blf
 import bpy
+import mathutils
 import numpy as np
 
 WORK, BACKEND_PYTHON = Path(sys.argv[sys.argv.index("--") + 1]), sys.argv[sys.argv.index("--") + 2]
@@ -290,7 +291,7 @@ def label_widths() -> None:
     settings = bpy.context.scene.nerf
     labels = {prop.identifier: prop.name for prop in settings.bl_rna.properties
               if prop.identifier not in ("rna_type", "name") and not prop.identifier.startswith("compare_")}
-    report["labels"] = {"column_px": column, "region_width_px": region.width,
+    report["labels"] = {"column_px": column, "region_width_px": region.width, "text_margins_px": 2 * 0.4 * 20 * scale,
                         "widths_px": {name: blf.dimensions(0, text)[0] for name, text in labels.items()},
                         "texts": labels}
 
@@ -323,7 +324,8 @@ def flow():
     settings.train_views, settings.val_views, settings.test_views = 16, 2, 3
     settings.resolution, settings.samples = 48, 128  # a few seconds of rendering: long enough to be seen
     # An iteration budget: what the run reaches does not depend on the machine's speed.
-    settings.preset, settings.budget_kind, settings.budget_iterations = "fast", "ITERATIONS", 400
+    # Long enough that Cancel comes before the end on a quiet machine; the resume is then short.
+    settings.preset, settings.budget_kind, settings.budget_iterations = "fast", "ITERATIONS", 3000
     label_widths()
     yield from shot("01_idle")
 
@@ -358,6 +360,7 @@ def flow():
     yield from wait(lambda: state_of(settings.run_dir) == "cancelled", 120, "training to stop")
     report["cancelled_at"] = job(settings.run_dir).iteration
     yield from shot("07_cancelled")
+    settings.budget_iterations = report["cancelled_at"] + 100
     yield from press("nerf.train", "Resume")
     yield from wait(lambda: state_of(settings.run_dir) == "done", 600, "the resumed training to finish")
     report["done"] = {"iteration": job(settings.run_dir).iteration, "detail": job(settings.run_dir).detail,
@@ -385,6 +388,44 @@ def flow():
     urls = WORK / "browser_urls.txt"
     yield from wait(urls.is_file, 300, "the report to open in the browser")
     report["open_report"] = urls.read_text().split()
+
+    # The scene camera's animation beside Cycles (a background Blender, then the backend), and
+    # the NeRF's mesh imported over the cube.
+    scene = bpy.context.scene
+    camera = scene.camera
+    for frame, dx in ((1, -0.3), (2, 0.0), (3, 0.3)):
+        camera.location.x += dx
+        camera.keyframe_insert("location", index=0, frame=frame)
+        camera.location.x -= dx
+    scene.frame_start, scene.frame_end = 1, 3
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 64, 48, 100
+    settings.animation_cycles, settings.animation_sequencer = True, True
+    folder = str(WORK / "run" / "animation" / "Camera")
+    yield from press("nerf.render_animation", None)
+    yield from wait(lambda: state_of(folder) not in (None, "idle"), 120, "the animation job to start")
+    stages = set()
+    for _ in range(600):
+        status = job(folder)
+        if status is not None and status.state == "running":
+            stages.add(status.detail.split(":")[0])
+        if status is not None and status.state != "running":
+            break
+        yield 0.25
+    status = job(folder)
+    report["animation"] = {"state": status.state, "detail": status.detail, "error": status.error,
+                           "stages": sorted(stages), "editor_image": _editor_image(),
+                           "strips": [[strip.name, strip.frame_final_duration] for strip in
+                                      (getattr(scene.sequence_editor, "strips", None) or scene.sequence_editor.sequences)]
+                           if scene.sequence_editor else []}
+    yield 1.0
+    yield from shot("12_animation")
+    yield from close_extra_windows()
+    yield from press("nerf.import_mesh", None)
+    yield from wait(lambda: "NeRF mesh" in bpy.data.objects, 300, "the NeRF mesh")
+    mesh = bpy.data.objects["NeRF mesh"]
+    report["mesh"] = {"vertices": len(mesh.data.vertices), "material": mesh.active_material.name,
+                      "bounds": [list(mesh.matrix_world @ mathutils.Vector(corner)) for corner in mesh.bound_box]}
+    yield from shot("13_mesh")
     log("flow finished")
 
 
