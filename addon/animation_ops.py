@@ -14,7 +14,7 @@ from . import sources
 from .backend_setup import check_backend
 from .job_timer import animation_job, ensure_timer
 from .paths import backend_python, dataset_dir, run_dir, settings
-from .results_ops import _reporting_backend_errors, run_backend
+from .results_ops import reporting_backend_errors, run_backend
 
 MESH_MATERIAL = "NeRF mesh vertex colours"
 
@@ -31,7 +31,7 @@ class NERF_OT_render_animation(bpy.types.Operator):
     bl_idname = "nerf.render_animation"
     bl_label = "Render Camera Animation"
 
-    @_reporting_backend_errors
+    @reporting_backend_errors
     def execute(self, context):
         s, scene = settings(context), context.scene
         python = backend_python(context)
@@ -102,7 +102,7 @@ class NERF_OT_import_mesh(bpy.types.Operator):
     bl_idname = "nerf.import_mesh"
     bl_label = "Import NeRF Mesh"
 
-    @_reporting_backend_errors
+    @reporting_backend_errors
     def execute(self, context):
         s = settings(context)
         run = run_dir(context)

@@ -33,7 +33,7 @@ def run_backend(context, *arguments: str) -> subprocess.CompletedProcess:
     return result
 
 
-def _reporting_backend_errors(execute):
+def reporting_backend_errors(execute):
     """An operator's ``execute`` whose failure (the backend's own one-line error, a timeout,
     the generator's error, a file that cannot be written) is shown as an error report and
     cancels, instead of a traceback."""
@@ -116,7 +116,7 @@ class NERF_OT_render_test_views(bpy.types.Operator):
     bl_idname = "nerf.render_test_views"
     bl_label = "Render Test Views"
 
-    @_reporting_backend_errors
+    @reporting_backend_errors
     def execute(self, context):
         run_backend(context, "render", str(run_dir(context)), "--split", "test", "--no-progress")
         renders = sorted((run_dir(context) / "renders" / "test").glob("r_*.png"), key=lambda p: int(p.stem[2:]))
@@ -133,7 +133,7 @@ class NERF_OT_render_active_camera(bpy.types.Operator):
     bl_idname = "nerf.render_active_camera"
     bl_label = "Render Active Camera"
 
-    @_reporting_backend_errors
+    @reporting_backend_errors
     def execute(self, context):
         image = show_image("NeRF active camera", render_active_camera_nerf(context))
         show_in_image_editor(context, image)
@@ -146,7 +146,7 @@ class NERF_OT_compare(bpy.types.Operator):
     bl_idname = "nerf.compare"
     bl_label = "Compare with Cycles"
 
-    @_reporting_backend_errors
+    @reporting_backend_errors
     def execute(self, context):
         _, size = _dataset_camera_settings(context)
         nerf = render_active_camera_nerf(context)
@@ -171,7 +171,7 @@ class NERF_OT_open_report(bpy.types.Operator):
     bl_idname = "nerf.open_report"
     bl_label = "Open Report"
 
-    @_reporting_backend_errors
+    @reporting_backend_errors
     def execute(self, context):
         run_backend(context, "report", str(run_dir(context)))
         page = run_dir(context) / "report" / "index.html"

@@ -171,7 +171,7 @@ def test_the_nerf_mesh_lands_on_the_original_objects(session):
         assert abs(ours - truth) < 0.2 * radius, (mesh["bounds_nerf"], mesh["bounds_truth"])
     # Rays from outside, aimed at each object from five sides, meet the NeRF's surface where
     # they meet the objects' (or miss both): most of them, and at the median within a tenth of
-    # the radius. Measured: 12 of 15 meet both, 1 misses both, median gap 0.13 (radius 4.54).
+    # the radius. Measured: 12 of 15 meet both, 1 misses both, median gap 0.17 (radius 4.54).
     both = [(a, b) for a, b in mesh["hits"] if a is not None and b is not None]
     neither = [hit for hit in mesh["hits"] if hit == [None, None]]
     assert len(both) + len(neither) >= 0.75 * len(mesh["hits"]), mesh["hits"]
