@@ -25,7 +25,8 @@ def dataset_options(context, out: Path):
     return sources.datasets_gen("options").options_from_keywords(
         out_dir=str(out), open_scene=True, train_views=s.train_views, val_views=s.val_views, test_views=s.test_views,
         width=s.resolution, height=s.resolution, samples=s.samples, device=s.render_device, seed=s.seed,
-        depth_normals=s.depth_normals, full_sphere=s.sphere, resume=out.exists() and any(out.iterdir()))
+        depth_normals=s.depth_normals, full_sphere=s.sphere, formats=tuple(sorted(s.dataset_formats)),
+        resume=out.exists() and any(out.iterdir()))
 
 
 def _dataset_complete(out: Path) -> bool:

@@ -91,6 +91,7 @@ class NERF_PT_dataset_rendering(_NerfPanel, bpy.types.Panel):
         layout.prop(s, "depth_normals")
         layout.prop(s, "sphere")
         layout.prop(s, "seed")
+        layout.prop(s, "dataset_formats")
 
 
 class NERF_PT_training(_NerfPanel, bpy.types.Panel):

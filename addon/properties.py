@@ -46,6 +46,10 @@ class NerfSettings(bpy.types.PropertyGroup):
     # Results of the last comparison (shown in the panel).
     # The last comparison's metrics as the backend lists them (compare.json's "metrics" table):
     # JSON rows {"key", "label", "value", "text"}; "" before any comparison.
+    dataset_formats: EnumProperty(
+        name="Also Write", options={"ENUM_FLAG"}, default=set(),
+        description="Layouts written beside nerf_synthetic's, from the same render",
+        items=(("ngp", "Instant-NGP", "One transforms.json of every split, as Instant-NGP and nerfstudio read it"),))
     animation_step: IntProperty(name="Frame Step", default=1, min=1, max=1000,
                                 description="Render every Nth frame of the scene's frame range")
     animation_cycles: BoolProperty(name="Beside Cycles", default=True,

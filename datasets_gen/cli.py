@@ -86,6 +86,9 @@ def _add_setting(group: argparse._ActionsContainer, setting: Setting) -> None:
     help_text = setting.help_text().replace("%", "%%")  # argparse %-formats help
     if setting.positional:
         group.add_argument(setting.keyword, nargs="?", metavar=setting.flag, help=help_text)
+    elif setting.repeatable:  # each flag's text, joined by commas for `parse`
+        group.add_argument(setting.flag, dest=setting.keyword, action="append", metavar=setting.metavar,
+                           help=help_text)
     elif setting.kind is bool:
         group.add_argument(setting.flag, dest=setting.keyword, action="store_true", default=None, help=help_text)
     else:  # text that `parse` reads is parsed after argparse, so that its error is the option's own line
@@ -95,8 +98,9 @@ def _add_setting(group: argparse._ActionsContainer, setting: Setting) -> None:
 
 def _given(args: argparse.Namespace) -> dict[str, Any]:
     """The settings the command line states, by keyword."""
-    return {setting.keyword: getattr(args, setting.keyword) for setting in SETTINGS
-            if setting.flag is not None and getattr(args, setting.keyword) is not None}
+    given = {setting.keyword: getattr(args, setting.keyword) for setting in SETTINGS
+             if setting.flag is not None and getattr(args, setting.keyword) is not None}
+    return {keyword: ",".join(value) if isinstance(value, list) else value for keyword, value in given.items()}
 
 
 def _image_size(args: argparse.Namespace, parser: argparse.ArgumentParser) -> dict[str, int]:

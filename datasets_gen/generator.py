@@ -21,6 +21,7 @@ from . import trajectories
 from .dataset_json import frame_entry, scene_profile, transforms_document
 from .depth_normals import DEPTH_CHANNELS, LAYOUT_RECORD, NORMAL_CHANNELS
 from .exr import ExrError, check_file
+from .formats import write_formats
 from .frame_fit import (
     BLENDER_RULE,
     DEMO_RULE,
@@ -179,6 +180,7 @@ def _run_in_blender(
         write_json_atomic(os.path.join(out_dir, transforms_name(split, options.shard)), document)
     if options.shard is None:
         write_json_atomic(os.path.join(out_dir, PROFILE_NAME), survey.profile)
+        write_formats(out_dir, options.formats, documents, survey.profile)
     finish_run(out_dir, options.shard)
     _report_timing(setup_seconds, *timing)
     return survey.profile
@@ -490,6 +492,8 @@ def settings_record(options: GeneratorOptions, camera: CameraSettings, source: d
         "depth_normals": options.depth_normals,
         "allow_missing": options.allow_missing,
         "color_management": options.color_management,
+        # Only when asked for, so that datasets from before --format keep their settings.
+        **({"formats": list(options.formats)} if options.formats else {}),
     }
 
 

@@ -28,6 +28,9 @@ FRAMES = ("fit", "blender")
 DEPTH_NORMALS = ("none", "test", "all")
 DEMO_VARIANTS = ("standard", "diffuse")
 COLOR_MANAGEMENT = ("standard", "scene")
+#: Dataset layouts: nerf_synthetic's transforms_{split}.json are always written (the dataset's
+#: own record); --format adds the others beside them, from the same render.
+FORMATS = ("nerf_synthetic", "ngp")
 
 
 class DatasetGenError(Exception):
@@ -96,6 +99,7 @@ class GeneratorOptions:
     resume: bool = False
     shard: Optional[Shard] = None
     check_only: bool = False
+    formats: tuple[str, ...] = ()  # layouts written besides nerf_synthetic's (FORMATS)
 
     def views(self, split: str) -> int:
         """Number of views of a split."""
@@ -138,6 +142,8 @@ class GeneratorOptions:
         _require(self.test_views >= 0, f"--test-views must be >= 0, got {self.test_views}")
         _require(self.samples >= 1, f"--samples must be >= 1, got {self.samples}")
         _require(0 <= self.seed < 2**31, f"--seed must be in [0, 2^31), got {self.seed}")
+        for name in self.formats:
+            _choice(name, FORMATS, "--format")
         _choice(self.device, DEVICES, "--device")
         if self.frame is not None:
             _choice(self.frame, FRAMES, "--frame")
@@ -236,6 +242,7 @@ class Setting:
     fields: tuple[str, ...] = ()
     parse: Optional[Callable[[str], Any]] = None
     text: Callable[[Any], str] = str
+    repeatable: bool = False  # the flag may be given again; the value is then a tuple of them
 
     @property
     def targets(self) -> tuple[str, ...]:
@@ -263,6 +270,8 @@ class Setting:
 
     def argv(self, value: Any) -> list[str]:
         """The command line stating `value` (a switch's is its flag alone)."""
+        if self.repeatable:
+            return [word for item in value for word in (self.flag, item)]
         if self.kind is bool:
             return [self.flag] if value else []
         return [self.text(value)] if self.positional else [self.flag, self.text(value)]
@@ -277,6 +286,19 @@ class Setting:
         if len(values) != len(self.targets):
             raise TypeError(f"dataset option {self.keyword!r} takes {len(self.targets)} values, got {value!r}")
         return dict(zip(self.targets, values))
+
+
+def parse_formats(text: str) -> tuple[str, ...]:
+    """``"ngp,nerf_synthetic"`` (the flags given, joined by commas) as the extra layouts, in
+    order, each once; nerf_synthetic's are always written, so it is not kept."""
+    names: list[str] = []
+    for name in (part.strip() for part in text.split(",")):
+        if not name:
+            continue
+        _choice(name, FORMATS, "--format")
+        if name != "nerf_synthetic" and name not in names:
+            names.append(name)
+    return tuple(names)
 
 
 def _field_value(options: GeneratorOptions, name: str) -> Any:
@@ -365,6 +387,9 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("resume", "--resume", "keep the views already written and verified in --out, render the rest", _LONG, bool),
     Setting("shard", "--shard", "render only views with index % N == K; then --merge", _LONG, metavar="K/N",
             parse=Shard.parse, text=lambda shard: f"{shard.index}/{shard.count}"),
+    Setting("formats", "--format", "also write the dataset in this layout, from the same render (repeatable): "
+            "ngp, one transforms.json for Instant-NGP and nerfstudio (nerf_synthetic's files are always written)",
+            _SCENE, metavar="NAME", parse=parse_formats, repeatable=True),
 )
 SETTINGS_BY_KEYWORD = {setting.keyword: setting for setting in SETTINGS}
 

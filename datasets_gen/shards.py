@@ -18,6 +18,7 @@ import os
 from typing import Any
 
 from .dataset_json import frame_index
+from .formats import write_formats
 from .options import SPLITS, DatasetGenError, Shard
 from .output_dir import (
     GEOMETRY_NAME,
@@ -75,6 +76,7 @@ def merge(out_dir: str) -> dict[str, Any]:
     for split in SPLITS:
         write_json_atomic(os.path.join(out_dir, f"transforms_{split}.json"), merged[split])
     write_json_atomic(os.path.join(out_dir, PROFILE_NAME), profile)
+    write_formats(out_dir, reference["generator"].get("settings", {}).get("formats", []), merged, profile)
     for split in SPLITS:
         for index in range(count):
             path = os.path.join(out_dir, transforms_name(split, Shard(index, count)))

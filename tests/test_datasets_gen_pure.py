@@ -536,7 +536,7 @@ ROUND_TRIPS = {
                               shift_x=-0.05, shift_y=0.1, resolution_x=64, resolution_y=48,
                               resolution_percentage=50, pixel_aspect_x=2.0, pixel_aspect_y=1.5),
         samples=16, seed=12345, full_sphere=True, device="GPU", frame="fit", depth_normals="all",
-        allow_missing=True, color_management="scene", resume=True, shard=Shard(1, 4)),
+        allow_missing=True, color_management="scene", resume=True, shard=Shard(1, 4), formats=("ngp",)),
     "builtin_square_check": lambda blend: GeneratorOptions(
         out_dir="", builtin="thin_structure", camera=CameraSettings(resolution_x=100, resolution_y=100),
         check_only=True, frame="blender", overwrite=True, shard=Shard(0, 1)),

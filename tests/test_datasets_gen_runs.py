@@ -127,6 +127,33 @@ def test_shards_merged_equal_an_unsharded_run(reference_run: Path, tmp_path: Pat
     assert_same_dataset(out, reference_run)
 
 
+def test_the_ngp_layout_holds_every_split_and_shards_write_it_too(tmp_path: Path) -> None:
+    """--format ngp: one transforms.json beside nerf_synthetic's, from the same render, with every
+    split's frames, their images and the shared intrinsics; a sharded run's merge writes it too."""
+    single = tmp_path / "single"
+    assert run_module(*RUN_ARGS, "--format", "ngp", "--out", str(single)).returncode == 0
+    ngp = json.loads((single / "transforms.json").read_text())
+    splits = {split: load_split(single, split) for split in ("train", "val", "test")}
+    for key in ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x"):
+        assert ngp[key] == splits["train"][key], key
+    frames = [frame for split in ("train", "val", "test") for frame in splits[split]["frames"]]
+    assert [f["transform_matrix"] for f in ngp["frames"]] == [f["transform_matrix"] for f in frames]
+    assert [f["file_path"] for f in ngp["frames"]] == [f["file_path"].removeprefix("./") + ".png" for f in frames]
+    assert all((single / f["file_path"]).is_file() for f in ngp["frames"])
+    for split in ("train", "val", "test"):  # nerfstudio's split lists
+        assert ngp[f"{split}_filenames"] == [f"{split}/r_{i}.png" for i in range(len(splits[split]["frames"]))]
+    # Instant-NGP's cube (p * 0.33 + 0.5, side aabb_scale) holds the scene's bounds, and half of it would not.
+    bounds = json.loads((single / "scene_profile.json").read_text())["bounds"]
+    needed = 2 * 0.33 * max(abs(v) for v in bounds["min"] + bounds["max"])
+    assert needed <= ngp["aabb_scale"] and (ngp["aabb_scale"] == 1 or needed > ngp["aabb_scale"] / 2)
+    sharded = tmp_path / "sharded"
+    for shard in ("0/2", "1/2"):
+        assert run_module(*RUN_ARGS, "--format", "ngp", "--out", str(sharded), "--shard", shard).returncode == 0
+    assert not (sharded / "transforms.json").exists()  # only the merge knows every frame
+    assert run_module("--merge", str(sharded)).returncode == 0
+    assert_same_dataset(sharded, single)
+
+
 def test_same_seed_same_dataset(reference_run: Path, tmp_path: Path) -> None:
     """A second run with the same flags and seed writes the same dataset (other seeds, other
     train/val poses: tests/test_trajectories.py)."""

@@ -13,6 +13,8 @@ import nerf_backend
 
 MODULES = sorted(info.name for info in pkgutil.walk_packages(nerf_backend.__path__, "nerf_backend.")
                  if not info.name.endswith("__main__"))
+# datasets_gen's pure modules with examples (its others import bpy).
+MODULES += ["datasets_gen.camera_path", "datasets_gen.formats"]
 
 
 @pytest.mark.parametrize("name", MODULES)

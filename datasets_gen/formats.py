@@ -1,0 +1,83 @@
+"""The dataset in other tools' layouts, written beside nerf_synthetic's from the same render.
+
+- ``ngp``: one ``transforms.json`` as Instant-NGP and nerfstudio read it: the shared exact
+  intrinsics (``fl_x, fl_y, cx, cy, w, h``, ``camera_angle_x/y``), ``aabb_scale``, and every
+  frame of every split with its image's path (extension included) and camera-to-world matrix
+  (the same OpenGL convention as nerf_synthetic's). nerfstudio takes the splits from
+  ``train_filenames``, ``val_filenames`` and ``test_filenames``; Instant-NGP trains on every
+  frame listed (give it ``transforms_train.json`` to hold the test views out).
+
+Pure (standard library): the generator and ``--merge`` call ``write_formats`` with the split
+documents they have just written.
+
+Example:
+    >>> frame = {"file_path": "./train/r_0", "transform_matrix": [[1, 0, 0, 0]] * 4}
+    >>> split = {"fl_x": 10.0, "fl_y": 10.0, "cx": 4.0, "cy": 4.0, "w": 8, "h": 8, "camera_angle_x": 0.76,
+    ...          "frames": [frame]}
+    >>> document = ngp_document({"train": split}, {"bounds": {"min": [-1.2, -1, -1], "max": [1, 1, 1]}})
+    >>> document["aabb_scale"], document["frames"][0]["file_path"], document["train_filenames"]
+    (1, 'train/r_0.png', ['train/r_0.png'])
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Any, Callable, Mapping
+
+from .output_dir import write_json_atomic
+
+NGP_NAME = "transforms.json"
+#: Instant-NGP maps the NeRF frame into its unit cube by p * 0.33 + 0.5 (its defaults, which
+#: nerf_synthetic scenes use); aabb_scale is the side of the cube rays march in, a power of 2.
+NGP_SCALE = 0.33
+MAX_AABB_SCALE = 128
+INTRINSIC_KEYS = ("camera_angle_x", "camera_angle_y", "fl_x", "fl_y", "cx", "cy", "w", "h")
+
+
+def aabb_scale(bounds_min: list[float], bounds_max: list[float]) -> int:
+    """The smallest power of 2 whose cube, centred on the origin of the NeRF frame at
+    Instant-NGP's scale, holds the scene's bounds (1 to 128)."""
+    reach = max(abs(value) for value in (*bounds_min, *bounds_max))
+    needed = 2.0 * NGP_SCALE * reach
+    return int(min(MAX_AABB_SCALE, 2 ** max(0, math.ceil(math.log2(needed))) if needed > 0 else 1))
+
+
+def _image_path(file_path: str) -> str:
+    path = file_path.removeprefix("./")
+    return path if path.lower().endswith(".png") else path + ".png"
+
+
+def ngp_document(documents: Mapping[str, dict], profile: Mapping[str, Any]) -> dict[str, Any]:
+    """The single ``transforms.json`` of all splits (in train, val, test order)."""
+    first = next(iter(documents.values()))
+    document: dict[str, Any] = {key: first[key] for key in INTRINSIC_KEYS if key in first}
+    bounds = profile.get("bounds") or {}
+    document["aabb_scale"] = aabb_scale(bounds["min"], bounds["max"]) if bounds.get("min") else 1
+    document["aabb_scale_rule"] = (f"the smallest power of 2 holding the scene's bounds at Instant-NGP's scale "
+                                   f"{NGP_SCALE} (scene_profile.json bounds)")
+    if "world_to_nerf" in first:
+        document["world_to_nerf"] = first["world_to_nerf"]
+    frames = []
+    for split, split_document in documents.items():
+        names = []
+        for frame in split_document["frames"]:
+            name = _image_path(frame["file_path"])
+            names.append(name)
+            frames.append({"file_path": name, "transform_matrix": frame["transform_matrix"]})
+        document[f"{split}_filenames"] = names
+    document["frames"] = frames
+    return document
+
+
+WRITERS: dict[str, Callable[[str, Mapping[str, dict], Mapping[str, Any]], None]] = {
+    "ngp": lambda out_dir, documents, profile: write_json_atomic(os.path.join(out_dir, NGP_NAME),
+                                                                 ngp_document(documents, profile)),
+}
+
+
+def write_formats(out_dir: str, formats: tuple[str, ...] | list[str], documents: Mapping[str, dict],
+                  profile: Mapping[str, Any]) -> None:
+    """Write each of ``formats`` (besides nerf_synthetic's, already written) into ``out_dir``."""
+    for name in formats:
+        WRITERS[name](out_dir, documents, profile)
