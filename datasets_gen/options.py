@@ -280,6 +280,8 @@ class Setting:
         """`value` (as a keyword gives it) as field name → value; text is parsed ("" is the default)."""
         if self.parse is not None and isinstance(value, str):
             value = self.parse(value) if value else self.default
+        elif self.repeatable and self.parse is not None:  # a list or tuple, as the add-on gives it
+            value = self.parse(",".join(value))
         if len(self.targets) == 1:
             return {self.targets[0]: value}
         values = tuple(value)

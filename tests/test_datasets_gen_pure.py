@@ -588,3 +588,14 @@ def test_keywords_name_an_unknown_option_and_parse_text() -> None:
         options_from_keywords(shard="4/4")
     with pytest.raises(ValueError, match="use_scene_camera"):
         options_to_argv(dataclasses.replace(options, use_scene_camera=True))
+
+
+def test_formats_are_validated_and_kept_once_in_order_however_given() -> None:
+    parser = build_parser()
+    args = parser.parse_args(["--demo", "--out", "o", "--format", "ngp", "--format", "nerf_synthetic,ngp"])
+    assert options_from_args(args, parser).formats == ("ngp",)
+    assert options_from_keywords(out_dir="o", demo=True, formats=["nerf_synthetic", "ngp"]).formats == ("ngp",)
+    with pytest.raises(DatasetGenError, match="--format must be one of nerf_synthetic, ngp, got colmap"):
+        options_from_keywords(out_dir="o", demo=True, formats=("colmap",))
+    assert options_to_argv(options_from_keywords(out_dir="o", demo=True, formats="ngp")) == [
+        "--demo", "--out", "o", "--format", "ngp"]
