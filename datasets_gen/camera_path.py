@@ -92,7 +92,7 @@ def camera_to_nerf(matrix_world: Sequence[Sequence[float]], world_to_nerf: Mappi
 def frame_entry(frame: FrameCamera, world_to_nerf: Mapping[str, Any], cycles: bool) -> dict[str, Any]:
     """One frame of the document: pose, intrinsics (as transforms.json names them) and lens."""
     intrinsics = frame.camera.intrinsics().as_dict()
-    entry: dict[str, Any] = {"frame": frame.frame, "stem": frame_stem(frame.frame), **intrinsics,
+    entry: dict[str, Any] = {"frame": frame.frame, **intrinsics,
                              "lens_mm": frame.camera.lens_mm,
                              "transform_matrix": camera_to_nerf(frame.matrix_world, world_to_nerf)}
     if cycles:
