@@ -1,11 +1,14 @@
 """The dataset in other tools' layouts, written beside nerf_synthetic's from the same render.
 
+- ``colmap``: a COLMAP model of the training views with their images and masks in ``colmap/``,
+  and ``points3d.ply``: the scene's surface points (colmap_export; needs numpy).
 - ``ngp``: one ``transforms.json`` as Instant-NGP and nerfstudio read it: the shared exact
   intrinsics (``fl_x, fl_y, cx, cy, w, h``, ``camera_angle_x/y``), ``aabb_scale``, and every
   frame of every split with its image's path (extension included) and camera-to-world matrix
   (the same OpenGL convention as nerf_synthetic's). nerfstudio takes the splits from
   ``train_filenames``, ``val_filenames`` and ``test_filenames``; Instant-NGP trains on every
-  frame listed (give it ``transforms_train.json`` to hold the test views out).
+  frame listed (give it ``transforms_train.json`` to hold the test views out).  With ``colmap``
+  it names ``points3d.ply`` as ``ply_file_path``, nerfstudio's initial points for splatfacto.
 
 Pure (standard library): the generator and ``--merge`` call ``write_formats`` with the split
 documents they have just written.
@@ -23,11 +26,12 @@ from __future__ import annotations
 
 import math
 import os
-from typing import Any, Callable, Mapping
+from typing import Any, Mapping
 
 from .output_dir import write_json_atomic
 
 NGP_NAME = "transforms.json"
+POINTS_NAME = "points3d.ply"  # colmap_export's point cloud (kept here: this module must not need numpy)
 #: Instant-NGP maps the NeRF frame into its unit cube by p * 0.33 + 0.5 (its defaults, which
 #: nerf_synthetic scenes use); aabb_scale is the side of the cube rays march in, a power of 2.
 NGP_SCALE = 0.33
@@ -70,14 +74,15 @@ def ngp_document(documents: Mapping[str, dict], profile: Mapping[str, Any]) -> d
     return document
 
 
-WRITERS: dict[str, Callable[[str, Mapping[str, dict], Mapping[str, Any]], None]] = {
-    "ngp": lambda out_dir, documents, profile: write_json_atomic(os.path.join(out_dir, NGP_NAME),
-                                                                 ngp_document(documents, profile)),
-}
-
-
 def write_formats(out_dir: str, formats: tuple[str, ...] | list[str], documents: Mapping[str, dict],
-                  profile: Mapping[str, Any]) -> None:
+                  profile: Mapping[str, Any], progress: bool = True) -> None:
     """Write each of ``formats`` (besides nerf_synthetic's, already written) into ``out_dir``."""
-    for name in formats:
-        WRITERS[name](out_dir, documents, profile)
+    if "colmap" in formats:
+        from .colmap_export import write_colmap  # numpy, which Debian's Blender lacks
+
+        write_colmap(out_dir, documents, profile, progress)
+    if "ngp" in formats:
+        document = ngp_document(documents, profile)
+        if "colmap" in formats:
+            document["ply_file_path"] = POINTS_NAME
+        write_json_atomic(os.path.join(out_dir, NGP_NAME), document)

@@ -152,6 +152,9 @@ def _run_in_blender(
     settings = settings_record(options, survey.camera, survey.source)
     _require_consistent_folder(out_dir, options, settings, bpy.app.version_string)
     prior, surface = _scene_files(survey)
+    if "colmap" in options.formats and surface is None:  # before hours of rendering, not after
+        raise DatasetGenError(f"--format colmap cannot sample points on the scene's surface: "
+                              f"{survey.profile.get('geometry_reason')}")
     depth_splits = [split for split in SPLITS if options.wants_depth_normals(split) and options.views(split)]
     device = configure_render(
         survey.scene, survey.view_layer, journal, camera=survey.camera, samples=options.samples,
@@ -180,7 +183,7 @@ def _run_in_blender(
         write_json_atomic(os.path.join(out_dir, transforms_name(split, options.shard)), document)
     if options.shard is None:
         write_json_atomic(os.path.join(out_dir, PROFILE_NAME), survey.profile)
-        write_formats(out_dir, options.formats, documents, survey.profile)
+        write_formats(out_dir, options.formats, documents, survey.profile, progress)
     finish_run(out_dir, options.shard)
     _report_timing(setup_seconds, *timing)
     return survey.profile

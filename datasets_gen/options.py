@@ -30,7 +30,7 @@ DEMO_VARIANTS = ("standard", "diffuse")
 COLOR_MANAGEMENT = ("standard", "scene")
 #: Dataset layouts: nerf_synthetic's transforms_{split}.json are always written (the dataset's
 #: own record); --format adds the others beside them, from the same render.
-FORMATS = ("nerf_synthetic", "ngp")
+FORMATS = ("nerf_synthetic", "colmap", "ngp")
 
 
 class DatasetGenError(Exception):
@@ -390,6 +390,7 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("shard", "--shard", "render only views with index % N == K; then --merge", _LONG, metavar="K/N",
             parse=Shard.parse, text=lambda shard: f"{shard.index}/{shard.count}"),
     Setting("formats", "--format", "also write the dataset in this layout, from the same render (repeatable): "
+            "colmap, a COLMAP model of the training views with surface points, and points3d.ply (3DGS, gsplat); "
             "ngp, one transforms.json for Instant-NGP and nerfstudio (nerf_synthetic's files are always written)",
             _SCENE, metavar="NAME", parse=parse_formats, repeatable=True),
 )

@@ -19,7 +19,7 @@ LINE_INTERVAL_S = 10.0  # the most often a plain line is written
 class ViewProgress:
     """Counts rendered views; use as a context manager and call `advance(split, index)` per view."""
 
-    def __init__(self, total: int, enabled: bool = True, unit: str = "view") -> None:
+    def __init__(self, total: int, enabled: bool = True, unit: str = "view", desc: str = "rendering") -> None:
         self._total = total
         self._unit = unit
         self._enabled = enabled
@@ -32,7 +32,7 @@ class ViewProgress:
             except ImportError:
                 tqdm = None
             if tqdm is not None:
-                self._bar = tqdm(total=total, unit=unit, file=sys.stderr, desc="rendering")
+                self._bar = tqdm(total=total, unit=unit, file=sys.stderr, desc=desc)
 
     def advance(self, split: str, index: int) -> None:
         """Record that view `index` of `split` has been written."""

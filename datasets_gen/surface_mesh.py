@@ -54,6 +54,26 @@ def ply_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
     return header.encode("ascii") + np.ascontiguousarray(vertices, dtype="<f4").tobytes() + face.tobytes()
 
 
+def read_ply(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices [V, 3] float32, faces [T, 3] int32) of a file ``ply_bytes`` wrote (and only such)."""
+    with open(path, "rb") as handle:
+        data = handle.read()
+    end = data.find(b"end_header\n")
+    header = data[:end].decode("ascii", "replace").splitlines() if end > 0 else []
+    counts = {line.split()[1]: int(line.split()[2]) for line in header if line.startswith("element ")}
+    if not header or header[:2] != ["ply", "format binary_little_endian 1.0"] or set(counts) != {"vertex", "face"}:
+        raise ValueError(f"{path}: not the scene geometry file datasets_gen writes")
+    body = data[end + len(b"end_header\n"):]
+    vertex_bytes = 12 * counts["vertex"]
+    face = np.dtype([("count", "u1"), ("indices", "<i4", (3,))])
+    if len(body) != vertex_bytes + face.itemsize * counts["face"]:
+        raise ValueError(f"{path}: {len(body)} bytes of vertices and faces, expected "
+                         f"{vertex_bytes + face.itemsize * counts['face']} (a truncated file?)")
+    vertices = np.frombuffer(body[:vertex_bytes], dtype="<f4").reshape(-1, 3)
+    faces = np.frombuffer(body[vertex_bytes:], dtype=face)["indices"]
+    return vertices.astype(np.float32), faces.astype(np.int32)
+
+
 def write_ply_atomic(path: str, vertices: np.ndarray, faces: np.ndarray) -> None:
     write_file_atomic(path, lambda handle: handle.write(ply_bytes(vertices, faces)))
 

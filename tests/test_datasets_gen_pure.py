@@ -595,7 +595,8 @@ def test_formats_are_validated_and_kept_once_in_order_however_given() -> None:
     args = parser.parse_args(["--demo", "--out", "o", "--format", "ngp", "--format", "nerf_synthetic,ngp"])
     assert options_from_args(args, parser).formats == ("ngp",)
     assert options_from_keywords(out_dir="o", demo=True, formats=["nerf_synthetic", "ngp"]).formats == ("ngp",)
-    with pytest.raises(DatasetGenError, match="--format must be one of nerf_synthetic, ngp, got colmap"):
-        options_from_keywords(out_dir="o", demo=True, formats=("colmap",))
+    assert options_from_keywords(out_dir="o", demo=True, formats=("ngp", "colmap")).formats == ("ngp", "colmap")
+    with pytest.raises(DatasetGenError, match="--format must be one of nerf_synthetic, colmap, ngp, got gsplat"):
+        options_from_keywords(out_dir="o", demo=True, formats=("gsplat",))
     assert options_to_argv(options_from_keywords(out_dir="o", demo=True, formats="ngp")) == [
         "--demo", "--out", "o", "--format", "ngp"]

@@ -32,7 +32,8 @@ def dataset_files(dataset: Path) -> list[str]:
 
 def assert_same_dataset(produced: Path, reference: Path) -> None:
     """Same files; identical JSON; identical PNG pixels; EXRs equal to float round-off; the
-    same occupancy prior (arrays equal; the zip's own timestamps may differ) and scene geometry.
+    same occupancy prior (arrays equal; the zip's own timestamps may differ); every other file
+    (scene geometry, points, the COLMAP model) byte for byte.
 
     Cycles' beauty pass is bit-identical for a fixed seed; its normal pass sums samples with
     atomic float adds whose order varies between runs, so normals may differ by ~1e-7.  PNG files
@@ -57,6 +58,8 @@ def assert_same_dataset(produced: Path, reference: Path) -> None:
                 assert a.files == b.files, name
                 for key in a.files:
                     np.testing.assert_array_equal(a[key], b[key], err_msg=f"{name} {key}")
+        else:  # the COLMAP model's .txt and .bin files
+            assert (produced / name).read_bytes() == (reference / name).read_bytes(), name
 
 
 @pytest.fixture(scope="module")
@@ -129,9 +132,11 @@ def test_shards_merged_equal_an_unsharded_run(reference_run: Path, tmp_path: Pat
 
 def test_the_ngp_layout_holds_every_split_and_shards_write_it_too(tmp_path: Path) -> None:
     """--format ngp: one transforms.json beside nerf_synthetic's, from the same render, with every
-    split's frames, their images and the shared intrinsics; a sharded run's merge writes it too."""
+    split's frames, their images and the shared intrinsics; a sharded run's merge writes it, and
+    the COLMAP model (tests/test_colmap_format.py), too, the same as one run."""
     single = tmp_path / "single"
-    assert run_module(*RUN_ARGS, "--format", "ngp", "--out", str(single)).returncode == 0
+    formats = ["--format", "ngp", "--format", "colmap"]
+    assert run_module(*RUN_ARGS, *formats, "--out", str(single)).returncode == 0
     ngp = json.loads((single / "transforms.json").read_text())
     splits = {split: load_split(single, split) for split in ("train", "val", "test")}
     for key in ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x"):
@@ -148,8 +153,9 @@ def test_the_ngp_layout_holds_every_split_and_shards_write_it_too(tmp_path: Path
     assert needed <= ngp["aabb_scale"] and (ngp["aabb_scale"] == 1 or needed > ngp["aabb_scale"] / 2)
     sharded = tmp_path / "sharded"
     for shard in ("0/2", "1/2"):
-        assert run_module(*RUN_ARGS, "--format", "ngp", "--out", str(sharded), "--shard", shard).returncode == 0
-    assert not (sharded / "transforms.json").exists()  # only the merge knows every frame
+        assert run_module(*RUN_ARGS, *formats, "--out", str(sharded), "--shard", shard).returncode == 0
+    # Only the merge knows every frame.
+    assert not (sharded / "transforms.json").exists() and not (sharded / "colmap").exists()
     assert run_module("--merge", str(sharded)).returncode == 0
     assert_same_dataset(sharded, single)
 

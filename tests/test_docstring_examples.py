@@ -14,7 +14,8 @@ import nerf_backend
 MODULES = sorted(info.name for info in pkgutil.walk_packages(nerf_backend.__path__, "nerf_backend.")
                  if not info.name.endswith("__main__"))
 # datasets_gen's pure modules with examples (its others import bpy).
-MODULES += ["datasets_gen.camera_path", "datasets_gen.formats"]
+MODULES += ["datasets_gen.camera_path", "datasets_gen.formats", "datasets_gen.png_image", "datasets_gen.zbuffer",
+            "datasets_gen.colmap_model", "datasets_gen.surface_mesh"]
 
 
 @pytest.mark.parametrize("name", MODULES)
