@@ -51,7 +51,8 @@ class NerfSettings(bpy.types.PropertyGroup):
         description="Layouts written beside nerf_synthetic's, from the same render",
         items=(("colmap", "COLMAP", "A COLMAP model of the training views (cameras, poses, images, masks) with the "
                                     "scene's surface points, and points3d.ply, as 3DGS, gsplat and nerfstudio read them"),
-               ("ngp", "Instant-NGP", "One transforms.json of every split, as Instant-NGP and nerfstudio read it")))
+               ("ngp", "NGP", "Instant-NGP's layout: one transforms.json of every split, as Instant-NGP and "
+                              "nerfstudio read it")))
     animation_step: IntProperty(name="Frame Step", default=1, min=1, max=1000,
                                 description="Render every Nth frame of the scene's frame range")
     animation_cycles: BoolProperty(name="Beside Cycles", default=True,

@@ -43,7 +43,7 @@ from .colmap_model import (
     sample_surface,
     world_to_camera,
 )
-from .formats import POINTS_NAME
+from .formats import COLMAP_DIR, POINTS_NAME
 from .options import DatasetGenError
 from .output_dir import GEOMETRY_NAME, write_file_atomic
 from .png_image import png_bytes, read_png
@@ -51,7 +51,6 @@ from .progress import ViewProgress
 from .surface_mesh import FRAME, read_ply
 from .zbuffer import PinholeCamera, depth_buffer
 
-COLMAP_DIR = "colmap"
 #: Surface points drawn (uniform by area); those no training view sees are dropped.
 POINT_SAMPLES = 20_000
 SPLIT = "train"

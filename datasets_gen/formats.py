@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 from typing import Any, Mapping
 
 from .output_dir import write_json_atomic
@@ -74,9 +75,23 @@ def ngp_document(documents: Mapping[str, dict], profile: Mapping[str, Any]) -> d
     return document
 
 
+#: What each layout writes into the dataset's folder.
+COLMAP_DIR = "colmap"
+OUTPUTS = {"colmap": (COLMAP_DIR, POINTS_NAME), "ngp": (NGP_NAME,)}
+
+
 def write_formats(out_dir: str, formats: tuple[str, ...] | list[str], documents: Mapping[str, dict],
                   profile: Mapping[str, Any], progress: bool = True) -> None:
-    """Write each of ``formats`` (besides nerf_synthetic's, already written) into ``out_dir``."""
+    """Write each of ``formats`` (besides nerf_synthetic's, already written) into ``out_dir``,
+    and remove the files of the others: an earlier run's layout would describe other renders."""
+    for name, outputs in OUTPUTS.items():
+        if name not in formats:
+            for output in outputs:
+                path = os.path.join(out_dir, output)
+                if os.path.isdir(path):
+                    shutil.rmtree(path)
+                elif os.path.isfile(path):
+                    os.remove(path)
     if "colmap" in formats:
         from .colmap_export import write_colmap  # numpy, which Debian's Blender lacks
 

@@ -365,6 +365,20 @@ def test_a_missing_render_is_named_and_the_earlier_export_is_kept(dataset, tmp_p
     assert not [path for path in copy.iterdir() if path.name.startswith(".")], "a partial export was left"
 
 
+def test_a_run_without_the_layouts_removes_the_earlier_runs(dataset, tmp_path):
+    """--overwrite with other formats: an earlier COLMAP model (or transforms.json) would describe
+    renders that are no longer there, so only the layouts asked for are left."""
+    copy = tmp_path / "A"
+    shutil.copytree(dataset, copy)
+    result = run_module(str(SCENE), "--out", str(copy), "--width", "40", "--height", "30", "--train-views", "4",
+                        "--val-views", "1", "--test-views", "1", "--samples", "4", "--format", "ngp",
+                        "--overwrite", "--no-progress")
+    assert result.returncode == 0, result.stderr
+    assert not (copy / "colmap").exists() and not (copy / "points3d.ply").exists()
+    ngp = json.loads((copy / "transforms.json").read_text())
+    assert "ply_file_path" not in ngp and len(ngp["frames"]) == 6
+
+
 @pytest.mark.blender_binary
 def test_a_blender_without_numpy_refuses_colmap_before_rendering(tmp_path):
     """Debian's blender has no numpy: --format colmap stops at once, saying why, and renders nothing."""

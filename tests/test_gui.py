@@ -165,3 +165,8 @@ def test_no_label_is_cut_off_at_the_default_sidebar_width(gui):
     margin = labels.get("text_margins_px", 16.0)
     too_wide = {name: width for name, width in labels["widths_px"].items() if width + margin > labels["column_px"]}
     assert not too_wide, f"labels wider than the {labels['column_px']:.0f}-pixel label column: {too_wide}"
+    # The toggle buttons of a set of flags ("Also Write": COLMAP, NGP) share the value column.
+    assert labels["flag_buttons"], "no set of flags was measured"
+    cut = {item: width for flags in labels["flag_buttons"].values() for item, width in flags["widths_px"].items()
+           if width + margin > flags["button_px"]}
+    assert not cut, f"toggle buttons too narrow for their text: {cut}"

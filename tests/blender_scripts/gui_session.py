@@ -291,9 +291,14 @@ def label_widths() -> None:
     settings = bpy.context.scene.nerf
     labels = {prop.identifier: prop.name for prop in settings.bl_rna.properties
               if prop.identifier not in ("rna_type", "name") and not prop.identifier.startswith("compare_")}
+    # A set of flags (ENUM_FLAG) is drawn as one row of toggle buttons sharing the value column.
+    value_column = 0.6 * (region.width - 2 * 10 * scale)
+    flags = {prop.identifier: {"button_px": value_column / len(prop.enum_items),
+                               "widths_px": {item.name: blf.dimensions(0, item.name)[0] for item in prop.enum_items}}
+             for prop in settings.bl_rna.properties if prop.type == "ENUM" and prop.is_enum_flag}
     report["labels"] = {"column_px": column, "region_width_px": region.width, "text_margins_px": 2 * 0.4 * 20 * scale,
                         "widths_px": {name: blf.dimensions(0, text)[0] for name, text in labels.items()},
-                        "texts": labels}
+                        "texts": labels, "flag_buttons": flags}
 
 
 def flow():
