@@ -27,7 +27,7 @@ $(STAMP): requirements-dev.txt pyproject.toml
 demo: $(STAMP)
 	$(PY) -m nerf_backend.demo --out $(DEMO_DIR)
 
-# The default suite (983 s in the last clean-clone CI run on 2 cores, set-up apart); the 15 slowest
+# The default suite (1021 s in the last clean-clone CI run on 2 cores, set-up apart); the 15 slowest
 # tests are listed at the end. Exit code 5 (no tests ran) fails.
 test: $(STAMP)
 	$(PY) -m pytest -m "not slow and not blender_matrix and not gui" --durations=15

@@ -470,7 +470,14 @@ def _require_consistent_folder(out_dir: str, options: GeneratorOptions, settings
     recorded = recorded_settings(out_dir, options.shard)
     if options.resume and recorded is not None:
         name, previous, previous_version = recorded
-        require_same_settings(previous, settings, os.path.join(out_dir, name))
+        current = settings
+        if options.shard is None:
+            # The layouts are written from the renders at the run's end: resuming a dataset with
+            # other --format flags adds (or removes) them without rendering again.  Shards must
+            # agree: the merge writes the layouts their settings name.
+            previous, current = ({key: value for key, value in record.items() if key != "formats"}
+                                 for record in (previous, settings))
+        require_same_settings(previous, current, os.path.join(out_dir, name))
         if previous_version != version:
             raise DatasetGenError(
                 f"{os.path.join(out_dir, name)} was rendered with Blender {previous_version}, this is "

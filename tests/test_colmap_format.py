@@ -379,6 +379,27 @@ def test_a_run_without_the_layouts_removes_the_earlier_runs(dataset, tmp_path):
     assert "ply_file_path" not in ngp and len(ngp["frames"]) == 6
 
 
+def test_resume_adds_or_removes_a_layout_without_rendering_again(dataset, tmp_path):
+    """--resume with other --format flags: nothing is rendered; the layouts asked for are written
+    (the same COLMAP model, byte for byte) and the others removed."""
+    copy = tmp_path / "A"
+    shutil.copytree(dataset, copy)
+    arguments = [str(SCENE), "--out", str(copy), "--width", str(WIDTH), "--height", str(HEIGHT),
+                 "--train-views", str(TRAIN_VIEWS), "--val-views", "1", "--test-views", "3", "--samples", "16",
+                 "--resume", "--no-progress"]
+    dropped = run_module(*arguments)
+    assert dropped.returncode == 0, dropped.stderr
+    assert "no view to render" in dropped.stderr
+    assert not (copy / "colmap").exists() and not (copy / "points3d.ply").exists()
+    assert not (copy / "transforms.json").exists()
+    added = run_module(*arguments, "--format", "colmap")
+    assert added.returncode == 0, added.stderr
+    assert "no view to render" in added.stderr
+    for path in sorted((dataset / "colmap").rglob("*")) + [dataset / "points3d.ply"]:
+        if path.is_file():
+            assert (copy / path.relative_to(dataset)).read_bytes() == path.read_bytes(), path
+
+
 @pytest.mark.blender_binary
 def test_a_blender_without_numpy_refuses_colmap_before_rendering(tmp_path):
     """Debian's blender has no numpy: --format colmap stops at once, saying why, and renders nothing."""
