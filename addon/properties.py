@@ -34,6 +34,13 @@ class NerfSettings(bpy.types.PropertyGroup):
         ("none", "None", "No depth or normals"), ("test", "Test Views", "Ground-truth depth and normals for the test views"),
         ("all", "All Views", "Ground-truth depth and normals for every view")))
     seed: IntProperty(name="Seed", default=0, min=0, description="Seed of the random camera positions (and of training)")
+    dataset_formats: EnumProperty(
+        name="Also Write", options={"ENUM_FLAG"}, default=set(),
+        description="Layouts written beside nerf_synthetic's, from the same render",
+        items=(("colmap", "COLMAP", "A COLMAP model of the training views (cameras, poses, images, masks) with the "
+                                    "scene's surface points, and points3d.ply, as 3DGS, gsplat and nerfstudio read them"),
+               ("ngp", "NGP", "Instant-NGP's layout: one transforms.json of every split, as Instant-NGP and "
+                              "nerfstudio read it")))
     # Training
     run_dir: StringProperty(name="Folder", subtype="DIR_PATH", default="//nerf_run",
                              description="Where training writes its checkpoint, events and renders")
@@ -43,16 +50,7 @@ class NerfSettings(bpy.types.PropertyGroup):
     budget_seconds: FloatProperty(name="Seconds", default=120.0, min=1.0, description="Training seconds for the whole run")
     budget_iterations: IntProperty(name="Iterations", default=3000, min=1, description="Training steps for the whole run")
     train_device: EnumProperty(name="Device", items=DEVICES, default="auto", description="What the backend trains on")
-    # Results of the last comparison (shown in the panel).
-    # The last comparison's metrics as the backend lists them (compare.json's "metrics" table):
-    # JSON rows {"key", "label", "value", "text"}; "" before any comparison.
-    dataset_formats: EnumProperty(
-        name="Also Write", options={"ENUM_FLAG"}, default=set(),
-        description="Layouts written beside nerf_synthetic's, from the same render",
-        items=(("colmap", "COLMAP", "A COLMAP model of the training views (cameras, poses, images, masks) with the "
-                                    "scene's surface points, and points3d.ply, as 3DGS, gsplat and nerfstudio read them"),
-               ("ngp", "NGP", "Instant-NGP's layout: one transforms.json of every split, as Instant-NGP and "
-                              "nerfstudio read it")))
+    # Results: the camera animation and the mesh
     animation_step: IntProperty(name="Frame Step", default=1, min=1, max=1000,
                                 description="Render every Nth frame of the scene's frame range")
     animation_cycles: BoolProperty(name="Beside Cycles", default=True,
@@ -62,6 +60,9 @@ class NerfSettings(bpy.types.PropertyGroup):
                                       description="Add the finished video to the Video Sequencer as a movie strip")
     mesh_resolution: IntProperty(name="Mesh Grid", default=256, min=16, max=1024,
                                  description="Grid vertices along the scene box's longest side for the NeRF mesh")
+    # Results of the last comparison (shown in the panel).
+    # The last comparison's metrics as the backend lists them (compare.json's "metrics" table):
+    # JSON rows {"key", "label", "value", "text"}; "" before any comparison.
     compare_metrics: StringProperty(name="Metrics", default="", description="The metrics of the last comparison with Cycles")
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import struct
 import zlib
+from typing import Iterator
 
 SIGNATURE = b"\x89PNG\r\n\x1a\n"
 RGBA = 6
@@ -19,17 +20,12 @@ class PngError(ValueError):
     """Why a PNG is not acceptable."""
 
 
-def check_rgba8(path: str, width: int, height: int) -> None:
-    """Raise PngError (or OSError) unless `path` decodes to a width x height 8-bit RGBA image."""
-    with open(path, "rb") as handle:
-        data = handle.read()
+def chunks(path: str, data: bytes) -> Iterator[tuple[bytes, bytes]]:
+    """(kind, body) of each chunk of the PNG file ``data`` (read from ``path``), every CRC
+    checked; PngError names the file and what is wrong."""
     if not data.startswith(SIGNATURE):
         raise PngError(f"{path}: not a PNG file")
     pos = len(SIGNATURE)
-    header = None
-    decompressor = zlib.decompressobj()
-    pixels = 0
-    ended = False
     while pos + 8 <= len(data):
         length, kind = struct.unpack(">I4s", data[pos:pos + 8])
         body = data[pos + 8:pos + 8 + length]
@@ -39,6 +35,18 @@ def check_rgba8(path: str, width: int, height: int) -> None:
         if zlib.crc32(kind + body) != struct.unpack(">I", crc_bytes)[0]:
             raise PngError(f"{path}: corrupt {kind.decode('latin-1')} chunk (CRC mismatch)")
         pos += 12 + length
+        yield kind, body
+
+
+def check_rgba8(path: str, width: int, height: int) -> None:
+    """Raise PngError (or OSError) unless `path` decodes to a width x height 8-bit RGBA image."""
+    with open(path, "rb") as handle:
+        data = handle.read()
+    header = None
+    decompressor = zlib.decompressobj()
+    pixels = 0
+    ended = False
+    for kind, body in chunks(path, data):
         if kind == b"IHDR":
             header = struct.unpack(">IIBBBBB", body)
         elif kind == b"IDAT":

@@ -23,7 +23,7 @@ import zlib
 
 import numpy as np
 
-from .png_check import SIGNATURE, PngError
+from .png_check import SIGNATURE, PngError, chunks
 
 #: PNG colour type of 1, 3 and 4 channels (grey, RGB, RGBA).
 COLOUR_TYPES = {1: 0, 3: 2, 4: 6}
@@ -34,21 +34,14 @@ def read_png(path: str) -> np.ndarray:
     """The 8-bit image at ``path`` as a [H, W, C] uint8 array (C = 1, 3 or 4)."""
     with open(path, "rb") as handle:
         data = handle.read()
-    if not data.startswith(SIGNATURE):
-        raise PngError(f"{path}: not a PNG file")
-    pos, header, compressed = len(SIGNATURE), None, []
-    while pos + 8 <= len(data):
-        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
-        body = data[pos + 8:pos + 8 + length]
-        if len(body) != length:
-            raise PngError(f"{path}: truncated {kind.decode('latin-1')} chunk")
+    header, compressed = None, []
+    for kind, body in chunks(path, data):
         if kind == b"IHDR":
             header = struct.unpack(">IIBBBBB", body)
         elif kind == b"IDAT":
             compressed.append(body)
         elif kind == b"IEND":
             break
-        pos += 12 + length
     if header is None:
         raise PngError(f"{path}: no IHDR chunk")
     width, height, depth, colour, _, _, interlace = header

@@ -86,7 +86,7 @@ def uv_sphere(radius: float, rings: int, segments: int) -> tuple[np.ndarray, np.
     return vertices, np.array(faces)
 
 
-def ray_depths(camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+def pixel_rays(camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
     """Per pixel centre: the ray direction with z = 1 (camera frame)."""
     j, i = np.mgrid[0:camera.height, 0:camera.width]
     return (i + 0.5 - camera.cx) / camera.fx, (j + 0.5 - camera.cy) / camera.fy
@@ -99,7 +99,7 @@ def test_depth_buffer_of_a_sphere_is_the_analytic_one():
     camera = PinholeCamera(96, 64, 80.0, 80.0, 47.0, 33.5)  # principal point off centre
     vertices, faces = uv_sphere(1.0, 128, 256)
     depth = depth_buffer(vertices, faces, np.eye(3), np.array([0.0, 0.0, 4.0]), camera)
-    x, y = ray_depths(camera)
+    x, y = pixel_rays(camera)
     # |s (x, y, 1) - (0, 0, 4)| = 1: (x² + y² + 1) s² - 8 s + 15 = 0.
     a = x ** 2 + y ** 2 + 1
     disc = 64 - 60 * a
@@ -116,7 +116,7 @@ def test_depth_buffer_clips_a_ground_plane_reaching_behind_the_camera():
     camera = PinholeCamera(64, 48, 40.0, 40.0, 32.0, 24.0)
     plane = np.array([[-50, 1, -10], [50, 1, -10], [50, 1, 50], [-50, 1, 50]], float)
     depth = depth_buffer(plane, np.array([[0, 1, 2], [0, 2, 3]]), np.eye(3), np.zeros(3), camera)
-    x, y = ray_depths(camera)
+    x, y = pixel_rays(camera)
     analytic = np.where(y > 0, 1 / np.where(y > 0, y, 1), np.inf)
     within = (analytic < 50) & (np.abs(x * analytic) < 50)  # the plane's extent
     np.testing.assert_allclose(depth[within], analytic[within], rtol=1e-9)
@@ -321,7 +321,7 @@ def depth_figures(dataset: Path) -> list[dict]:
     vertices, faces = read_ply(str(dataset / "scene_geometry.ply"))
     points, normals = sample_surface(vertices, faces, 20_000, seed=0)
     camera = PinholeCamera(test["w"], test["h"], test["fl_x"], test["fl_y"], test["cx"], test["cy"])
-    x, y = ray_depths(camera)
+    x, y = pixel_rays(camera)
     ray_length = np.sqrt(x ** 2 + y ** 2 + 1)
     figures = []
     for frame in test["frames"]:
