@@ -9,8 +9,8 @@ from pathlib import Path
 
 import torch
 
-from .bench import DEFAULT_PRESETS, Variant, ablation_variants, run_bench, run_suite, step_cost
-from .configs.presets import PRESETS
+from .bench import DEFAULT_PRESETS, Variant, ablation_variants, profile_marched_step, run_bench, run_suite, step_cost
+from .configs.presets import PRESETS, preset_config
 from .core.devices import resolve_device
 from .core.errors import NerfError
 from .data.run_folder import RunFolder
@@ -24,6 +24,7 @@ from .evaluation.report import write_report
 from .metrics.registry import summary_line
 from .models.base import Model
 from .models.marched import MarchedModel
+from .models.registry import model_class
 from .training.trainer import TrainOptions, train
 
 # `train`'s exit status when the run ended on a model collapsed to the blank image (bad input: 2).
@@ -90,12 +91,19 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", type=Path, required=True)
     bench.add_argument("--overwrite", action="store_true")
 
-    step = sub.add_parser("bench-step", help="seconds per training iteration of a NeRF preset against a "
-                                             "plain PyTorch implementation of the same maths")
+    step = sub.add_parser("bench-step", help="a NeRF preset's seconds per iteration against a plain PyTorch "
+                                             "implementation of the same maths; a marched preset's training step "
+                                             "and rendered view split by stage, against this machine's limits")
     step.add_argument("dataset", type=Path)
     step.add_argument("--preset", default="paper")
-    step.add_argument("--steps", type=_positive_int, default=3, help="timed iterations on each side")
+    step.add_argument("--steps", type=_positive_int, default=None,
+                      help="timed iterations (default: 3 for NeRF presets, 50 for marched ones)")
     step.add_argument("--rays", type=_positive_int, default=None, help="rays per batch (default: the preset's)")
+    step.add_argument("--warmup-seconds", type=_positive_float, default=60.0,
+                      help="marched presets: training before the timed steps, the whole schedule laid over it")
+    step.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                      help="marched presets: change a setting of the preset")
+    step.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
     step.add_argument("--seed", type=int, default=0)
     step.add_argument("--out", type=Path, required=True)
     step.add_argument("--overwrite", action="store_true")
@@ -218,8 +226,19 @@ def _run(args: argparse.Namespace) -> int:
         print(f"written {args.out / 'bench.json'}, {args.out / 'bench.md'}, {args.out / 'bench.png'}")
         return 0
 
+    if args.command == "bench-step" and model_class(preset_config(args.preset).model).uses_occupancy_prior:
+        overrides = tuple(args.overrides) + ((f"rays_per_batch={args.rays}",) if args.rays else ())
+        report = profile_marched_step(args.dataset, args.preset, args.steps or 50, args.out, seed=args.seed,
+                                      warmup_seconds=args.warmup_seconds, overrides=overrides,
+                                      device_name=args.device, overwrite=args.overwrite)
+        print((args.out / "step_profile.md").read_text(), end="")
+        print(f"written {args.out / 'step_profile.json'}, {args.out / 'step_profile.md'}")
+        return 0
+
     if args.command == "bench-step":
-        report = step_cost(args.dataset, args.preset, args.steps, args.out, seed=args.seed, rays=args.rays,
+        if args.overrides:
+            raise NerfError("bench-step: --set applies to marched presets; a NeRF preset is measured as it is")
+        report = step_cost(args.dataset, args.preset, args.steps or 3, args.out, seed=args.seed, rays=args.rays,
                            overwrite=args.overwrite)
         per = report["seconds_per_iteration"]
         print(f"{args.preset}, {report['rays_per_batch']} rays: this project {per['project']:.2f} s/iteration, "

@@ -113,6 +113,37 @@ def test_bench_step_times_both_sides(tiny_demo_dataset, tmp_path):
     assert "plain PyTorch" in result.stdout
 
 
+def test_bench_step_profiles_a_marched_preset_by_stage(tiny_demo_dataset, tmp_path):
+    """A marched preset's step and rendered view split by stage, against measured rates."""
+    out = tmp_path / "profile"
+    result = run_python("-m", "nerf_backend", "bench-step", str(tiny_demo_dataset), "--preset", "auto",
+                        "--warmup-seconds", "4", "--steps", "6", "--out", str(out))
+    report = json.loads((out / "step_profile.json").read_text())
+    hardware = report["hardware"]
+    assert hardware["gflops"] > 1 and hardware["bandwidth_gb_s"] > 0.5 and hardware["gathers_m_s"] > 1
+    training = report["training"]
+    stages = {row["stage"]: row for row in training["stages"]}
+    assert list(stages) == ["data", "rays", "upkeep", "march", "density pass", "field", "composite", "loss",
+                            "backward", "optimiser", "other"]
+    assert 0 < training["seconds_per_step"] < 30
+    timed = sum(row["seconds"] for name, row in stages.items() if name != "other")
+    assert 0 < timed <= training["seconds_per_step"] * 1.001  # the stages are parts of the step
+    assert stages["other"]["seconds"] >= -1e-9 and abs(sum(row["share"] for row in stages.values()) - 1) < 1e-6
+    assert stages["data"]["items"] == stages["rays"]["items"] == report["rays_per_batch"]
+    # Each pass keeps fewer samples: all march steps, the occupied ones, the lit ones.
+    assert stages["march"]["items"] >= stages["density pass"]["items"] >= stages["field"]["items"] > 0
+    for name in ("march", "density pass", "field", "backward", "optimiser"):
+        row = stages[name]
+        assert row["reference_seconds"] > 0 and row["times_reference"] == pytest.approx(
+            row["seconds"] / row["reference_seconds"]), name
+    render = {row["stage"]: row for row in report["render"]["stages"]}
+    assert list(render) == ["spans", "march", "density", "colour", "other"]
+    assert render["spans"]["items"] == report["image_size"][0] * report["image_size"][1]
+    assert render["march"]["items"] >= render["density"]["items"] >= render["colour"]["items"] > 0
+    assert report["warmup"]["iterations"] > 0 and report["training"]["steps"] == 6
+    assert "## Training step" in result.stdout and "## Rendered view" in result.stdout
+
+
 def _children(pid: int) -> list[int]:
     found = []
     for entry in Path("/proc").iterdir():

@@ -12,6 +12,7 @@ from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.field_components.grid_encodings import VectorMatrixGrid
 from nerf_backend.models.marched import GridModel
 from nerf_backend.models.nerf import NerfModel
+from nerf_backend.model_components.marcher import SKIPPED_WEIGHT
 from nerf_backend.model_components.occupancy import OccupancyGrid
 
 BOX = SceneBounds((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
@@ -167,7 +168,7 @@ def test_coarse_to_fine_schedule():
     assert model.field.resolution == grid.initial_resolution
     resolutions = [model.field.resolution_after(i) for i in (0, grid.upsample_iterations[0], 10**6)]
     assert resolutions[0] < resolutions[1] < resolutions[2] == grid.resolution
-    assert model.before_step(grid.upsample_iterations[0]) is True
+    assert model.before_step(0, grid.upsample_iterations[0]) is True
     assert model.field.resolution == resolutions[1]
     assert model.occupancy.cells == (resolutions[1] - 1,) * 3
 
@@ -197,8 +198,9 @@ def test_density_volume_reads_the_same_density_as_the_grids():
 
 
 def test_inference_render_matches_the_training_march():
-    """Without gradients the model marches in segments, stops opaque rays and reads density
-    from the dense volume; the image must equal the full march to the early-stop bound."""
+    """Without gradients the model marches only occupied spans, stops opaque rays, reads
+    density from the dense volume and leaves the faintest weight uncoloured; the image must
+    equal the full march to the bounds of those shortcuts."""
     model = _solid_grid_model()
     from nerf_backend.core.cameras import ray_box_intersection
 
@@ -216,6 +218,64 @@ def test_inference_render_matches_the_training_march():
     assert 0 < opaque.sum() < len(opaque)  # some rays stop early, some pass through
     # A stopped ray loses at most its remaining transmittance (1e-4) of colour and opacity.
     tolerance = GridModel.OPAQUE_TRANSMITTANCE + 1e-5
-    assert (early.rgb - full.rgb).abs().max() < tolerance
+    # Colour also leaves up to SKIPPED_WEIGHT of a ray's faintest weight to its mean colour.
+    assert (early.rgb - full.rgb).abs().max() < tolerance + SKIPPED_WEIGHT
+    assert (early.opacity - full.opacity).abs().max() < tolerance
+    assert (early.depth - full.depth).abs().max() < tolerance * float(far.max()) + 1e-4
+
+
+def test_occupied_spans_cover_every_occupied_step():
+    """The skip pass is conservative: every march step whose midpoint lies in an occupied
+    fine cell is inside a span ``occupied_spans`` returns, on a scattered occupancy."""
+    from nerf_backend.core.cameras import ray_box_intersection
+    from nerf_backend.model_components.marcher import occupied_spans
+
+    torch.manual_seed(5)
+    box_min, box_max = torch.tensor([-1.0, -0.5, -0.25]), torch.tensor([1.0, 0.5, 0.25])  # not a cube
+    grid = OccupancyGrid(box_min, box_max, (64, 32, 16))
+    grid.occupied.copy_(torch.rand(64, 32, 16) < 0.002)  # scattered specks: most skip cells empty
+    origins = torch.nn.functional.normalize(torch.randn(4000, 3), dim=-1) * 3.0
+    directions = torch.nn.functional.normalize(torch.rand(4000, 3) * (box_max - box_min) + box_min - origins, dim=-1)
+    near, far, _ = ray_box_intersection(origins, directions, box_min, box_max)
+    step = 1.0 / 32 * 0.7
+    steps = math.ceil(float((box_max - box_min).norm()) / step) + 1
+    ray, first, span = occupied_spans(grid, origins, directions, near, far, step, steps)
+    assert span > 1 and len(ray) < 0.5 * len(origins) * steps / span  # it does skip
+    covered = torch.zeros(len(origins), steps + span, dtype=torch.bool)
+    for offset in range(span):
+        covered[ray, first + offset] = True
+    u = torch.arange(steps - 1)
+    t_lo = torch.minimum(near[:, None] + u * step, far[:, None])
+    t_hi = torch.minimum(t_lo + step, far[:, None])
+    mid = origins[:, None] + directions[:, None] * (0.5 * (t_lo + t_hi))[..., None]
+    occupied = grid.query(mid.view(-1, 3)).view(len(origins), -1) & (t_hi > t_lo)
+    assert occupied.sum() > 100
+    assert not (occupied & ~covered[:, :steps - 1]).any()
+
+
+def test_inference_skips_empty_space_and_still_matches_the_training_march():
+    """Occupancy restricted to a corner: most spans are skipped without a fine step, and the
+    image still equals the full march to the early-stop bound."""
+    model = _solid_grid_model()
+    from nerf_backend.core.cameras import ray_box_intersection
+    from nerf_backend.model_components.marcher import occupied_spans
+
+    corner = torch.zeros_like(model.occupancy.occupied)
+    corner[: corner.shape[0] // 3, : corner.shape[1] // 2] = True
+    model.occupancy.occupied &= corner
+    torch.manual_seed(6)
+    origins = torch.nn.functional.normalize(torch.randn(3000, 3), dim=-1) * 4.0
+    directions = torch.nn.functional.normalize(torch.rand(3000, 3) * 2.0 - 1.0 - origins, dim=-1)
+    near, far, _ = ray_box_intersection(origins, directions, torch.tensor(BOX.box_min), torch.tensor(BOX.box_max))
+    ray, _, span = occupied_spans(model.occupancy, origins, directions, near, far, model.step, model.samples_per_ray)
+    assert len(ray) * span < 0.6 * int((far > near).sum()) * model.samples_per_ray
+    with torch.enable_grad():
+        full = model(origins, directions, near, far)[0]
+    with torch.no_grad():
+        early = model(origins, directions, near, far)[0]
+    assert 0 < (full.opacity > 0.5).sum() < len(origins)
+    tolerance = GridModel.OPAQUE_TRANSMITTANCE + 1e-5
+    # Colour also leaves up to SKIPPED_WEIGHT of a ray's faintest weight to its mean colour.
+    assert (early.rgb - full.rgb).abs().max() < tolerance + SKIPPED_WEIGHT
     assert (early.opacity - full.opacity).abs().max() < tolerance
     assert (early.depth - full.depth).abs().max() < tolerance * float(far.max()) + 1e-4

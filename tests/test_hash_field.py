@@ -139,7 +139,7 @@ def test_checkpoint_shapes_round_trip(preset):
     """A checkpoint's state loads into a freshly built model of the same preset."""
     torch.manual_seed(5)
     trained = build_model(PRESETS[preset], BOX)
-    trained.before_step(10**6)  # a grid model upsamples to its final resolution
+    trained.before_step(1, 10**6)  # a grid model upsamples to its final resolution
     fresh = build_model(PRESETS[preset], BOX)
     fresh.restore(trained.state_dict())
     for (name, a), (_, b) in zip(trained.state_dict().items(), fresh.state_dict().items()):

@@ -14,15 +14,19 @@ A variant is a preset with changes: ``NAME=PRESET+KEY=VALUE+...`` (``--set`` syn
 
 One idea a module: ``variants`` (variants and the paper's ablations), ``curves`` (curve points,
 time to a PSNR), ``runner`` (one dataset: ``run_bench``), ``suite`` (many datasets:
-``run_suite``), ``tables`` (markdown tables and plots), ``step_cost`` (``bench-step``),
-``plain_nerf`` (the plain NeRF step ``bench-step`` measures against).
+``run_suite``), ``tables`` (markdown tables and plots), ``step_cost`` (``bench-step`` of a NeRF
+preset), ``plain_nerf`` (the plain NeRF step it measures against), ``step_profile``
+(``bench-step`` of a marched preset: stages against the machine) and ``hardware`` (the
+machine's measured FLOP rate, bandwidth and gather rate).
 
 Layer 7: above training and evaluation, which it drives.
 """
 
 from .curves import THRESHOLDS_DB, curve_points, time_to_reach
 from .runner import bench_variant, run_bench
+from .hardware import measure_hardware
 from .step_cost import step_cost
+from .step_profile import profile_marched_step, profile_markdown
 from .suite import COLLAPSE_MARGIN_DB, find_datasets, run_suite, scene_blank_psnr
 from .tables import markdown_table, plot_curves, plot_suite, suite_markdown
 from .variants import ABLATIONS, DEFAULT_PRESETS, PAPER_ORDER, Variant, ablation_order, ablation_variants
@@ -30,6 +34,6 @@ from .variants import ABLATIONS, DEFAULT_PRESETS, PAPER_ORDER, Variant, ablation
 __all__ = [
     "ABLATIONS", "COLLAPSE_MARGIN_DB", "DEFAULT_PRESETS", "PAPER_ORDER", "THRESHOLDS_DB", "Variant",
     "ablation_order", "ablation_variants", "bench_variant", "curve_points", "find_datasets", "markdown_table",
-    "plot_curves", "plot_suite", "run_bench", "run_suite", "scene_blank_psnr", "step_cost", "suite_markdown",
-    "time_to_reach",
+    "measure_hardware", "plot_curves", "plot_suite", "profile_marched_step", "profile_markdown", "run_bench",
+    "run_suite", "scene_blank_psnr", "step_cost", "suite_markdown", "time_to_reach",
 ]

@@ -85,8 +85,9 @@ def bench_variant(dataset: str, variant: Variant, out_dir: str, budget_seconds: 
         summary = train(TrainOptions(
             dataset=Path(dataset), run=run_dir, preset=variant.preset if k == 0 else None,
             overrides=variant.overrides if k == 0 else (), seed=seed, device=device_name,
-            max_seconds=target if budget_seconds is not None else None,
-            iterations=int(target) if iterations is not None else (10**9 if k == 0 else None),
+            # Scored at points along one run: the schedule spans the whole budget.
+            max_seconds=target if budget_seconds is not None else None, schedule_seconds=budget_seconds,
+            iterations=int(target) if iterations is not None else None,
             resume=k > 0, overwrite=k == 0, progress=False,
         ))
         scores, _ = _score(run_dir, test, curve_indices, device)

@@ -14,6 +14,10 @@ from ..fields.mlp_field import FieldConfig
 from ..model_components.samplers import SamplingConfig
 
 
+# How a run under a time budget counts its schedule (TrainConfig.schedule).
+SCHEDULES = ("budget", "iterations")
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Everything that decides how a run trains."""
@@ -41,7 +45,14 @@ class TrainConfig:
     rays_per_batch: int = 1024
     # Train on only the first N training views (the paper's 25/50/100-view ablation).
     max_train_views: int | None = None
+    # The schedule's length: learning-rate decay, grid growth and centre crops are set in
+    # these steps. Without a time budget the run stops after this many.
     iterations: int = 200_000
+    # Under a time budget (--max-seconds): "budget" lays the schedule over the budget (its
+    # step is the share of the budget spent times `iterations`, so decay, growth and crops
+    # end with the budget); "iterations" counts steps taken whatever the budget (a run then
+    # stops where the clock cuts its schedule).
+    schedule: str = "budget"
     learning_rate: float = 5e-4
     # Learning rate of the MLPs when the model also has grids (which use learning_rate).
     network_learning_rate: float = 5e-4
@@ -81,6 +92,21 @@ class TrainConfig:
     def learning_rate_at(self, step: int) -> float:
         return self.learning_rate * self.learning_rate_decay(step)
 
+    def scheduled_step(self, steps: int, spent: float | None, stop_at_iterations: bool = True) -> int:
+        """The place in the schedule after ``steps`` steps, ``spent`` the share of the time
+        budget used (None: no budget). With both a budget and an iteration count, the one
+        nearer its end leads, so the schedule ends with whichever stops the run.
+
+        Example:
+            >>> config = TrainConfig(preset="x", iterations=3000)
+            >>> config.scheduled_step(100, None), config.scheduled_step(100, 0.5, stop_at_iterations=False)
+            (100, 1500)
+        """
+        if spent is None or self.schedule == "iterations":
+            return steps
+        by_time = int(self.iterations * min(max(spent, 0.0), 1.0))
+        return max(steps, by_time) if stop_at_iterations else by_time
+
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
@@ -95,6 +121,7 @@ class TrainConfig:
         values["grid"] = GridFieldConfig(**{**values["grid"],
                                             "upsample_iterations": tuple(values["grid"]["upsample_iterations"])})
         values["adam_betas"] = tuple(values["adam_betas"])
+        values.setdefault("schedule", "iterations")  # runs from before budget schedules
         # Runs from before the hash field have no "hash" group: its defaults.
         values["hash"] = HashFieldConfig(**values.get("hash", {}))
         return cls(**values)

@@ -299,21 +299,25 @@ def load_split(dataset_dir: Path | str, split: str) -> DatasetSplit:
     poses = [_pose(frame, index, json_path) for index, frame in enumerate(frames)]
     paths = [_image_path(dataset_dir, frame, index, json_path) for index, frame in enumerate(frames)]
     depth_paths = [_depth_path(dataset_dir, frame, index, json_path) for index, frame in enumerate(frames)]
-    images: list[np.ndarray] = []
-    for image_path in paths:
+    # One uint8 array filled image by image: no list of images beside a stacked copy, so
+    # loading peaks at the split's own size (100 views at 800×800: 256 MB).
+    images: np.ndarray | None = None
+    for index, image_path in enumerate(paths):
         pixels = _read_rgba(image_path)
-        if images and pixels.shape != images[0].shape:
+        if images is None:
+            images = np.empty((len(paths), *pixels.shape), np.uint8)
+        elif pixels.shape != images.shape[1:]:
             raise DatasetError(
                 f"{image_path}: size {pixels.shape[1]}×{pixels.shape[0]} differs from "
-                f"{paths[0].name}'s {images[0].shape[1]}×{images[0].shape[0]}"
+                f"{paths[0].name}'s {images.shape[2]}×{images.shape[1]}"
             )
-        images.append(pixels)
-    height, width = images[0].shape[:2]
+        images[index] = pixels
+    height, width = images.shape[1:3]
     return DatasetSplit(
         name=split,
         intrinsics=read_intrinsics(data, json_path, width, height),
         poses=torch.from_numpy(np.stack(poses)).float(),
-        rgba=torch.from_numpy(np.stack(images)),
+        rgba=torch.from_numpy(images),
         image_paths=paths,
         depth_paths=depth_paths,
     )

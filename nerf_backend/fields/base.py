@@ -4,10 +4,28 @@ implements these is marched, trained, rendered and benched with no other change.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from torch import Tensor, nn
 
 from ..core.scene_bounds import SceneBounds
+
+
+class SampleCost(NamedTuple):
+    """What evaluating one sample costs: values gathered from memory (grid or table reads)
+    and floating-point operations (a multiply-add is 2)."""
+
+    gathers: int
+    flops: int
+
+    def __add__(self, other: "SampleCost") -> "SampleCost":  # type: ignore[override]
+        return SampleCost(self.gathers + other.gathers, self.flops + other.flops)
+
+
+def mlp_flops(network: nn.Module) -> int:
+    """FLOPs of one input through every ``nn.Linear`` of ``network`` (2 per weight)."""
+    return sum(2 * m.in_features * m.out_features for m in network.modules() if isinstance(m, nn.Linear))
 
 
 class MarchableField(nn.Module):
@@ -44,6 +62,13 @@ class MarchableField(nn.Module):
         the field allows one, else an estimate) and the field's mean density."""
         raise NotImplementedError
 
+    def sample_cost(self) -> dict[str, SampleCost]:
+        """One sample's cost in each of the field's reads: ``"density"``, ``"colour"``,
+        ``"field"`` (``forward``: both) and ``"frozen density"`` (``density_from_volume``).
+        bench-step states the field's stages
+        against the CPU's measured gather and FLOP rates with these."""
+        raise NotImplementedError
+
     def density_volume(self) -> Tensor | None:
         """A precomputed form of the density for fast reads without gradients, or None."""
         return None
@@ -57,8 +82,9 @@ class MarchableField(nn.Module):
         the encoding learning rate, every other parameter the network one."""
         return []
 
-    def before_step(self, iteration: int) -> bool:
-        """Schedules of the field's own (a grid's upsampling). True when the parameters
+    def before_step(self, scheduled: int) -> bool:
+        """Schedules of the field's own (a grid's upsampling), at ``scheduled`` steps into
+        the run's schedule (``Model.before_step``). True when the parameters
         were replaced, so the optimiser and the occupancy grid must follow."""
         return False
 

@@ -18,7 +18,7 @@ from torch import Tensor, nn
 from ..core.scene_bounds import SceneBounds, vertices_for
 from ..field_components.encodings import PositionalEncoding
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
-from .base import MarchableField
+from .base import MarchableField, SampleCost, mlp_flops
 
 
 @dataclass(frozen=True)
@@ -104,6 +104,16 @@ class GridField(MarchableField):
             features = torch.cat([features, self.direction_encoding(directions)], dim=-1)
         return torch.sigmoid(self.colour_mlp(features).float())
 
+    def sample_cost(self) -> dict[str, SampleCost]:
+        # Each channel of a component reads 4 plane and 2 line values, and interpolating
+        # takes a multiply-add of each.
+        per_channel = 3 * (4 + 2)
+        density, colour = per_channel * self.config.density_channels, per_channel * self.config.appearance_channels
+        costs = {"density": SampleCost(density, 2 * density),
+                 "colour": SampleCost(colour, 2 * colour + mlp_flops(self.appearance_basis) + mlp_flops(self.colour_mlp)),
+                 "frozen density": SampleCost(8, 16)}  # one trilinear read of the density volume
+        return {**costs, "field": costs["density"] + costs["colour"]}
+
     @torch.no_grad()
     def density_volume(self) -> Tensor:
         """The density's pre-activation at every vertex, ``[1, 1, Nz, Ny, Nx]`` laid out (z, y, x)
@@ -138,11 +148,11 @@ class GridField(MarchableField):
     def encoding_parameters(self) -> list[nn.Parameter]:
         return [*self.density_grid.parameters(), *self.appearance_grid.parameters()]
 
-    def before_step(self, iteration: int) -> bool:
+    def before_step(self, scheduled: int) -> bool:
         """Upsample on schedule (coarse-to-fine)."""
-        if self.resolution_after(iteration) == self.resolution:
+        if self.resolution_after(scheduled) == self.resolution:
             return False
-        self.resize(self.vertices_at(self.resolution_after(iteration)))
+        self.resize(self.vertices_at(self.resolution_after(scheduled)))
         return True
 
     def match_state(self, state: dict[str, Tensor]) -> bool:

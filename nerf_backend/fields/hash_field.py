@@ -17,7 +17,7 @@ from torch import Tensor, nn
 from ..core.scene_bounds import SceneBounds, vertices_for
 from ..field_components.encodings import PositionalEncoding
 from ..field_components.hash_encoding import HashEncoding
-from .base import MarchableField
+from .base import MarchableField, SampleCost, mlp_flops
 
 
 @dataclass(frozen=True)
@@ -107,6 +107,13 @@ class HashField(MarchableField):
 
     def encoding_parameters(self) -> list[nn.Parameter]:
         return list(self.encoding.parameters())
+
+    def sample_cost(self) -> dict[str, SampleCost]:
+        # Every level reads its 8 corners' features; density and colour share that read.
+        reads = self.config.levels * 8 * self.config.features_per_level
+        features = SampleCost(reads, 2 * reads + mlp_flops(self.density_mlp))
+        both = features + SampleCost(0, mlp_flops(self.colour_mlp))
+        return {"density": features, "colour": both, "field": both, "frozen density": features}
 
     @torch.no_grad()
     def occupancy_estimate(self) -> tuple[Tensor, float]:

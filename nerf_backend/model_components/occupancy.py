@@ -9,8 +9,15 @@ threshold anywhere is never skipped; other fields give an estimate (``MarchableF
 
 from __future__ import annotations
 
+import math
+
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
+
+# Fine cells along each side of a skip cell (``OccupancyGrid.skip_cells``): a ray first steps
+# through these, and only the spans that can hold density are marched in fine steps.
+SKIP_FACTOR = 8
 
 
 class OccupancyGrid(nn.Module):
@@ -46,6 +53,45 @@ class OccupancyGrid(nn.Module):
         inside = ((points >= self.box_min) & (points <= self.box_max)).all(dim=-1)
         ijk = self.cell_index(points)
         return inside & self.occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+
+    def skip_cells(self) -> Tensor:
+        """``[Sx, Sy, Sz]`` bool cells of ``SKIP_FACTOR``³ fine cells each, marked where any
+        fine cell in them *or in a neighbouring skip cell* is occupied (dilated by one skip
+        cell). So any segment no longer than a skip cell's shortest side whose midpoint lies
+        in an unmarked skip cell holds no occupied fine cell: every point of it is within
+        half a skip cell of the midpoint on each axis. Cached until ``occupied`` changes."""
+        key = (id(self.occupied), self.occupied._version)
+        if getattr(self, "_skip_key", None) != key:
+            fine = self.occupied.to(torch.float32)[None, None]
+            coarse = F.max_pool3d(fine, SKIP_FACTOR, stride=SKIP_FACTOR, ceil_mode=True)
+            self._skip = F.max_pool3d(coarse, 3, stride=1, padding=1)[0, 0] > 0
+            self._skip_key = key
+        return self._skip
+
+    def skip_span_steps(self, step: float) -> int:
+        """March steps of length ``step`` in one span that ``skip_cells`` can vouch for: the
+        span must be no longer than a skip cell's shortest side."""
+        fine_side = float(((self.box_max - self.box_min) / self._cells_tensor).min())
+        return max(1, math.floor(SKIP_FACTOR * fine_side / step * (1 + 1e-6)))
+
+    def occupied_along(self, origins: Tensor, directions: Tensor, t: Tensor, skip: bool = False) -> Tensor:
+        """``[R, S]``: whether the points ``origins + t·directions`` (``t [R, S]``) lie in an
+        occupied cell, or with ``skip`` in a marked skip cell (``skip_cells``; clamped to the
+        grid). Computed in cell units along each ray (one multiply-add a point, no world
+        positions), which is what the inference march queries most. Without ``skip``, points
+        outside the box are unoccupied, as ``query`` has them."""
+        factor = SKIP_FACTOR if skip else 1
+        cells = self.skip_cells() if skip else self.occupied
+        side = (self.box_max - self.box_min) / self._cells_tensor * factor
+        start = (origins - self.box_min) / side
+        along = directions / side
+        units = torch.addcmul(start[:, None, :], along[:, None, :], t[..., None])  # [R, S, 3]
+        shape = torch.tensor(cells.shape, device=units.device, dtype=units.dtype)
+        inside = None if skip else ((units >= 0) & (units <= shape)).all(dim=-1)  # the box, faces included
+        index = torch.minimum(units.floor_().clamp_(min=0), shape - 1).to(torch.int64)
+        strides = torch.tensor([cells.shape[1] * cells.shape[2], cells.shape[2], 1], device=index.device)
+        marked = cells.view(-1)[(index * strides).sum(dim=-1)]
+        return marked if skip else marked & inside
 
     @property
     def occupied_fraction(self) -> float:

@@ -82,9 +82,12 @@ class Model(nn.Module):
         """The optimiser's groups, in a fixed order (checkpoints store the optimiser by it)."""
         return [ParameterGroup("networks", list(self.parameters()), "learning_rate")]
 
-    def before_step(self, iteration: int) -> bool:
-        """Called before each training step. True when the parameters were replaced (the
-        optimiser must be rebuilt)."""
+    def before_step(self, iteration: int, scheduled: int) -> bool:
+        """Called before each training step: ``iteration`` counts the steps taken (what
+        per-step upkeep follows), ``scheduled`` is the run's place in its preset's schedule,
+        in that schedule's steps (what growth follows; under a time budget it is the share
+        of the budget spent, so the schedule ends with the budget). True when the parameters
+        were replaced (the optimiser must be rebuilt)."""
         return False
 
     def match_state(self, state: dict[str, Tensor]) -> None:

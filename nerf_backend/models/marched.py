@@ -102,9 +102,10 @@ class MarchedModel(Model):
         return [ParameterGroup("encoding", encoding, "learning_rate"),
                 ParameterGroup("networks", networks, "network_learning_rate")]
 
-    def before_step(self, iteration: int) -> bool:
-        """The field's schedule (a grid's upsampling), then the occupancy grid's refresh."""
-        replaced = self.field.before_step(iteration)
+    def before_step(self, iteration: int, scheduled: int) -> bool:
+        """The field's schedule (a grid's upsampling), then the occupancy grid's refresh
+        (every ``occupancy_every`` steps taken)."""
+        replaced = self.field.before_step(scheduled)
         if replaced:
             self._fit_sampling_to_field()
             self.update_occupancy()

@@ -15,12 +15,13 @@ import torch
 import torch.nn.functional as F
 
 from ..configs.presets import preset_config
-from ..configs.train_config import TrainConfig, with_overrides
+from ..configs.train_config import SCHEDULES, TrainConfig, with_overrides
 from ..core.cameras import camera_rays, pixel_centres
 from ..core.devices import autocast_dtype, resolve_device
 from ..core.errors import NerfError, RunError
 from ..core.files import write_png
 from ..core.progress import Progress
+from ..core.stage_timer import stage
 from ..data.dataset import DatasetSplit, composite, load_scene_bounds, load_scene_profile, load_split
 from ..data.occupancy_prior import PRIOR_KINDS, OccupancyPrior, load_occupancy_prior
 from ..data.run_folder import IN_USE, LOCK_NAME, RunFolder
@@ -40,6 +41,9 @@ class TrainOptions:
     preset: str | None = None  # None on resume: the run's own
     iterations: int | None = None  # total for the run; None: the preset's
     max_seconds: float | None = None  # total training seconds for the run
+    # The time budget the schedule is laid over (TrainConfig.schedule); None: max_seconds.
+    # The bench stops a run at points along its budget to score it, on one schedule.
+    schedule_seconds: float | None = None
     seed: int = 0
     overrides: tuple[str, ...] = ()  # KEY=VALUE changes to the preset (new runs only)
     device: str = "auto"
@@ -190,6 +194,8 @@ class _RunPlan:
     config: TrainConfig
     seed: int
     max_seconds: float | None
+    schedule_seconds: float | None  # the budget the schedule spans (None: by iterations)
+    stop_at_iterations: bool  # False: a time budget alone ends the run
     device: torch.device
     train_split: DatasetSplit
     ray_bounds: RayBounds
@@ -204,6 +210,8 @@ class _RunPlan:
             "seed": self.seed,
             "device": str(self.device),
             "max_seconds": self.max_seconds,
+            "schedule_seconds": self.schedule_seconds,
+            "stop_at_iterations": self.stop_at_iterations,
             "config": self.config.to_dict(),
             "decisions": self.decisions,
             "background": "white (RGBA composited as rgb·α + 1 − α)",
@@ -227,10 +235,20 @@ def _plan_run(run: RunFolder, dataset: Path, train_split: DatasetSplit, options:
         config = TrainConfig.from_dict(stored["config"])
         seed = stored["seed"]
         max_seconds = options.max_seconds if options.max_seconds is not None else stored.get("max_seconds")
+        stop_at_iterations = options.iterations is not None or stored.get("stop_at_iterations", True)
+        schedule_seconds = options.schedule_seconds or options.max_seconds or stored.get("schedule_seconds")
     else:
         config = with_overrides(preset_config(options.preset or "preview"), list(options.overrides))
         seed = options.seed
         max_seconds = options.max_seconds
+        # A time budget alone trains until the time is spent (the schedule laid over it);
+        # with --iters as well, whichever comes first.
+        stop_at_iterations = options.iterations is not None or max_seconds is None
+        schedule_seconds = options.schedule_seconds or max_seconds
+    if config.schedule not in SCHEDULES:
+        raise NerfError(f"schedule {config.schedule!r}: choose {' or '.join(SCHEDULES)}")
+    if config.schedule == "iterations":
+        schedule_seconds = None
     if options.iterations is not None:
         config = replace(config, iterations=options.iterations)
 
@@ -244,8 +262,8 @@ def _plan_run(run: RunFolder, dataset: Path, train_split: DatasetSplit, options:
         user_set = frozenset(assignment.partition("=")[0] for assignment in options.overrides)
         config, auto_decisions = auto_config(config, train_split, ray_bounds.box, load_scene_profile(dataset), user_set)
         decisions.update(auto_decisions)
-    return _RunPlan(dataset, config, seed, max_seconds, device, train_split, ray_bounds,
-                    _occupancy_prior(dataset, config), decisions)
+    return _RunPlan(dataset, config, seed, max_seconds, schedule_seconds, stop_at_iterations, device, train_split,
+                    ray_bounds, _occupancy_prior(dataset, config), decisions)
 
 
 def _train_locked(run: RunFolder, plan: _RunPlan, val_split: DatasetSplit | None, options: TrainOptions) -> TrainSummary:
@@ -270,9 +288,9 @@ class _Training:
         self.amp_dtype = autocast_dtype(self.config.precision, self.device)
         # float16's narrow range needs the loss scaled so small gradients do not flush to zero.
         self.scaler = torch.amp.GradScaler(self.device.type, enabled=self.amp_dtype is torch.float16)
-        # A run that collapsed starts again at `start_iteration` (its schedules count from
-        # there); `attempt` counts those starts.
-        self.restart = {"attempt": 0, "start_iteration": 0}
+        # A run that collapsed starts again at `start_iteration` and `start_seconds` (its
+        # schedules count from there); `attempt` counts those starts.
+        self.restart = {"attempt": 0, "start_iteration": 0, "start_seconds": 0.0}
         self.model = _new_model(self.config, plan.ray_bounds, plan.prior, plan.seed, 0, self.device)
         self.optimizer = _optimizer(self.model, self.config)
         self.batch_generator = torch.Generator().manual_seed(plan.seed)
@@ -303,7 +321,8 @@ class _Training:
         started_at = self.iteration
         run.log_event("start", iteration=self.iteration, resumed=options.resume, preset=config.preset,
                       device=str(self.device), cpu_threads=torch.get_num_threads(),
-                      target_iterations=config.iterations, max_seconds=self.plan.max_seconds)
+                      target_iterations=config.iterations if self.plan.stop_at_iterations else None,
+                      max_seconds=self.plan.max_seconds, schedule_seconds=self.plan.schedule_seconds)
         self.progress = _TrainingProgress(config.iterations, self.iteration, self.plan.max_seconds,
                                           self.train_seconds, enabled=options.progress,
                                           description=f"train {config.preset}")
@@ -324,7 +343,7 @@ class _Training:
         max_seconds = self.plan.max_seconds
         self.model.train()
         with _StopRequest() as stop:
-            while self.iteration < self.config.iterations:
+            while not self.plan.stop_at_iterations or self.iteration < self.config.iterations:
                 if max_seconds is not None and self.train_seconds >= max_seconds:
                     return "time"
                 if stop.requested:
@@ -341,38 +360,47 @@ class _Training:
     def _step(self) -> None:
         """One optimiser step on a batch of random rays."""
         config, device, model = self.config, self.device, self.model
-        step = self.iteration - self.restart["start_iteration"]  # the schedules' step
+        steps = self.iteration - self.restart["start_iteration"]
+        scheduled = self._scheduled_step(steps)
         step_start = time.perf_counter()
         width = self.rgba.shape[2]
-        precrop = config.precrop_fraction if step < config.precrop_iterations else None
-        image_index, pixel_index = sample_ray_batch(self.plan.train_split, config.rays_per_batch,
-                                                    self.batch_generator, precrop)
-        image_index, pixel_index = image_index.to(device), pixel_index.to(device)
-        pixels_rgba = self.rgba[image_index, pixel_index // width, pixel_index % width]
-        if config.random_background:
-            background = torch.rand((len(pixel_index), 3), generator=self.batch_generator).to(device)
-        else:
-            background = torch.ones((), device=device)
-        target = composite(pixels_rgba, background)
-        origins, directions = camera_rays(self.plan.train_split.intrinsics, self.poses[image_index],
-                                          pixel_centres(width, pixel_index))
-        t_near, t_far = self.plan.ray_bounds(origins, directions)
-        decay = config.learning_rate_decay(step)
-        for group in self.optimizer.param_groups:
-            group["lr"] = group["initial_lr"] * decay
-        if model.before_step(step):
-            self.optimizer = _optimizer(model, config)  # the parameters were replaced (a grid upsampled)
+        precrop = config.precrop_fraction if scheduled < config.precrop_iterations else None
+        rays = config.rays_per_batch
+        with stage("data", items=rays):
+            image_index, pixel_index = sample_ray_batch(self.plan.train_split, rays, self.batch_generator, precrop)
+            image_index, pixel_index = image_index.to(device), pixel_index.to(device)
+            pixels_rgba = self.rgba[image_index, pixel_index // width, pixel_index % width]
+            if config.random_background:
+                background = torch.rand((len(pixel_index), 3), generator=self.batch_generator).to(device)
+            else:
+                background = torch.ones((), device=device)
+            target = composite(pixels_rgba, background)
+        with stage("rays", items=rays):
+            origins, directions = camera_rays(self.plan.train_split.intrinsics, self.poses[image_index],
+                                              pixel_centres(width, pixel_index))
+            t_near, t_far = self.plan.ray_bounds(origins, directions)
+        with stage("upkeep"):  # the model's schedule: grid growth, occupancy refreshes
+            if model.before_step(steps, scheduled):
+                self.optimizer = _optimizer(model, config)  # the parameters were replaced (a grid upsampled)
+            # After any rebuild: a new optimiser starts at the initial rates.
+            decay = config.learning_rate_decay(scheduled)
+            for group in self.optimizer.param_groups:
+                group["lr"] = group["initial_lr"] * decay
         with torch.autocast(device.type, dtype=self.amp_dtype or torch.float32, enabled=self.amp_dtype is not None):
             outputs = model(origins, directions, t_near, t_far, background=background,
                             generator=self.sample_generator)
-        errors = [F.mse_loss(output.rgb.float(), target) for output in outputs]
-        loss = torch.stack(errors).sum()
-        if not torch.isfinite(loss):
-            self._diverged(f"loss {loss.item()}")
-        self.optimizer.zero_grad(set_to_none=True)
-        self.scaler.scale(loss).backward()
-        self.scaler.step(self.optimizer)
-        self.scaler.update()
+        with stage("loss", items=rays):
+            errors = [F.mse_loss(output.rgb.float(), target) for output in outputs]
+            loss = torch.stack(errors).sum()
+            if not torch.isfinite(loss):
+                self._diverged(f"loss {loss.item()}")
+        parameters = sum(p.numel() for p in model.parameters())
+        with stage("backward", items=parameters):
+            self.optimizer.zero_grad(set_to_none=True)
+            self.scaler.scale(loss).backward()
+        with stage("optimiser", items=parameters):
+            self.scaler.step(self.optimizer)
+            self.scaler.update()
         self.iteration += 1
         self.train_seconds += time.perf_counter() - step_start
         self.progress.step(self.iteration, self.train_seconds)
@@ -380,7 +408,15 @@ class _Training:
             batch_psnr = mse_to_psnr(errors[-1].item())
             self.progress.show(loss=f"{loss.item():.4f}", psnr=f"{batch_psnr:.2f}")
             self.run_folder.log_event("train", iteration=self.iteration, loss=loss.item(), psnr=batch_psnr,
-                                      lr=config.learning_rate_at(step + 1), elapsed_s=self.train_seconds)
+                                      lr=config.learning_rate_at(scheduled), scheduled=scheduled,
+                                      elapsed_s=self.train_seconds)
+
+    def _scheduled_step(self, steps: int) -> int:
+        """Where this start of the run is in its schedule after ``steps`` steps: by the
+        share of the schedule's time budget spent, when it has one (TrainConfig.schedule)."""
+        budget, start = self.plan.schedule_seconds, self.restart.get("start_seconds", 0.0)
+        spent = None if budget is None else (self.train_seconds - start) / max(budget - start, 1e-9)
+        return self.config.scheduled_step(steps, spent, self.plan.stop_at_iterations)
 
     def _validate(self) -> None:
         self.score = _validate(self.model, self.val_split, self.plan.ray_bounds, self.run_folder, self.iteration,
@@ -420,7 +456,8 @@ class _Training:
         action = "restarted from a new start with " + "; ".join(reasons)
         self.plan.decisions["collapse_recovery"] = {"value": changes, "at_iteration": self.iteration,
                                                     "reason": f"{self.collapse.describe()}: {action}"}
-        self.restart.update(attempt=self.restart["attempt"] + 1, start_iteration=self.iteration)
+        self.restart.update(attempt=self.restart["attempt"] + 1, start_iteration=self.iteration,
+                            start_seconds=self.train_seconds)
         self.run_folder.write_config({**self.record, "config": self.config.to_dict(),
                                       "decisions": self.plan.decisions})
         self.model = _new_model(self.config, self.plan.ray_bounds, self.plan.prior, self.plan.seed,

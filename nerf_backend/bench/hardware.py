@@ -1,0 +1,50 @@
+"""What this machine can do, measured now: the yardsticks bench-step states each stage
+against. Measured, not looked up: the same CPU model runs at other speeds on other machines
+(and two kinds of CPU, with and without AVX-512, share this project's machines)."""
+
+from __future__ import annotations
+
+import time
+
+import torch
+
+
+def _best_seconds(work, repeats: int) -> float:
+    work()  # warm-up: allocation and first-touch costs are not the machine's rate
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        work()
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def measure_hardware(device: torch.device, repeats: int = 3, table_bytes: int = 64 * 2**20) -> dict:
+    """FLOP rate (a 2048² float32 matrix product), memory bandwidth (a 256 MB copy: read and
+    write counted) and the rate of random single-float gathers from a table of
+    ``table_bytes`` (what a grid look-up does per channel: give the field's size, since a
+    table that fits in cache gathers faster), each the best of ``repeats``.
+
+    Example:
+        >>> rates = measure_hardware(torch.device("cpu"), repeats=1)
+        >>> sorted(rates), rates["gflops"] > 0
+        (['bandwidth_gb_s', 'gathers_m_s', 'gflops'], True)
+    """
+    def synchronised(work):
+        def run():
+            work()
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+        return run
+
+    a = torch.randn(2048, 2048, device=device)
+    b = torch.randn(2048, 2048, device=device)
+    matmul = _best_seconds(synchronised(lambda: a @ b), repeats)
+    source = torch.empty(64 * 2**20, device=device)  # 256 MB of float32
+    target = torch.empty_like(source)
+    copy = _best_seconds(synchronised(lambda: target.copy_(source)), repeats)
+    table = torch.randn(max(table_bytes // 4, 2**18), device=device)
+    index = torch.randint(len(table), (8 * 2**20,), device=device)
+    gather = _best_seconds(synchronised(lambda: table.index_select(0, index)), repeats)
+    return {"gflops": 2 * 2048**3 / matmul / 1e9, "bandwidth_gb_s": 2 * source.numel() * 4 / copy / 1e9,
+            "gathers_m_s": index.numel() / gather / 1e6}
