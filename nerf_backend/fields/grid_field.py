@@ -142,7 +142,11 @@ class GridField(MarchableField):
         """Each cell's largest corner density: exact, because the pre-activation is
         trilinear inside a cell and the activation is monotone."""
         density = self.vertex_density()
-        cell_max = F.max_pool3d(density[None, None], kernel_size=2, stride=1)[0, 0]
+        # The largest of each cell's 8 corners, one axis at a time: three elementwise maxima
+        # (max_pool3d's 2×2×2 window took 376 ms at 256³ on 2 CPU cores; this, a few ms).
+        cell_max = torch.maximum(density[:-1], density[1:])
+        cell_max = torch.maximum(cell_max[:, :-1], cell_max[:, 1:])
+        cell_max = torch.maximum(cell_max[:, :, :-1], cell_max[:, :, 1:])
         return cell_max, float(density.mean())
 
     def encoding_parameters(self) -> list[nn.Parameter]:
