@@ -47,7 +47,7 @@ class NerfSettings(bpy.types.PropertyGroup):
     preset: EnumProperty(name="Preset", items=PRESETS, default="auto", description="The model and its training settings")
     budget_kind: EnumProperty(name="Budget", default="TIME", description="Stop training after a time or a number of steps", items=(
         ("TIME", "Time", "Train for a number of seconds"), ("ITERATIONS", "Iterations", "Train for a number of steps")))
-    budget_seconds: FloatProperty(name="Seconds", default=120.0, min=1.0, description="Training seconds for the whole run")
+    budget_seconds: FloatProperty(name="Seconds", default=120.0, min=1.0, description="Training seconds for the whole run: the learning rate and the grid's growth are scheduled to end with them")
     budget_iterations: IntProperty(name="Iterations", default=3000, min=1, description="Training steps for the whole run")
     train_device: EnumProperty(name="Device", items=DEVICES, default="auto", description="What the backend trains on")
     # Results: the camera animation and the mesh

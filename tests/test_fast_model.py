@@ -279,3 +279,22 @@ def test_inference_skips_empty_space_and_still_matches_the_training_march():
     assert (early.rgb - full.rgb).abs().max() < tolerance + SKIPPED_WEIGHT
     assert (early.opacity - full.opacity).abs().max() < tolerance
     assert (early.depth - full.depth).abs().max() < tolerance * float(far.max()) + 1e-4
+
+
+def test_occupancy_along_rays_equals_the_query_of_world_points():
+    """The inference march asks in cell units along each ray; it must say what ``query``
+    says of the same world points, boundaries aside (the two round differently there)."""
+    torch.manual_seed(7)
+    box_min, box_max = torch.tensor([-1.0, -0.5, -0.25]), torch.tensor([1.0, 0.5, 0.25])
+    grid = OccupancyGrid(box_min, box_max, (40, 20, 10))
+    grid.occupied.copy_(torch.rand(40, 20, 10) < 0.3)
+    origins = torch.randn(500, 3) * 2.0
+    directions = torch.nn.functional.normalize(torch.randn(500, 3), dim=-1)
+    t = torch.rand(500, 64) * 5.0
+    along = grid.occupied_along(origins, directions, t)
+    points = (origins[:, None] + directions[:, None] * t[..., None]).view(-1, 3)
+    direct = grid.query(points).view(500, 64)
+    assert along.any() and (~along).any()
+    units = ((points - box_min) / (box_max - box_min) * torch.tensor([40.0, 20.0, 10.0])).view(500, 64, 3)
+    near_boundary = ((units - units.round()).abs() < 1e-4).any(dim=-1)
+    assert not (along != direct)[~near_boundary].any()

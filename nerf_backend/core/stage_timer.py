@@ -51,8 +51,10 @@ class StageTimer:
 
 
 @contextmanager
-def stage(name: str, items: int = 0) -> Iterator[None]:
-    """Time the block as stage ``name`` when a ``StageTimer`` is entered; else nothing."""
+def stage(name: str, items: "int | torch.Tensor" = 0) -> Iterator[None]:
+    """Time the block as stage ``name`` when a ``StageTimer`` is entered; else nothing.
+    ``items`` may be a tensor (a count on the device): it is read only while profiling, so
+    a normal run never waits for the device to count."""
     timer = _active
     if timer is None:
         yield

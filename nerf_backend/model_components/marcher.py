@@ -7,8 +7,8 @@ can share work between the two) or ``colour_fn(points, directions) -> [P, 3]``, 
 ``OccupancyGrid`` that says where density can be. Nothing here knows what the field is.
 
 Two renders share the same samples: ``render_marched`` for training (gradients, only for
-samples light reaches) and ``render_marched_stopping_early`` for inference (segments of
-steps; a ray stops once opaque).
+samples light reaches) and ``render_marched_stopping_early`` for inference (only the spans an
+occupancy "skip grid" keeps, packed per ray; a ray stops once opaque).
 
 Example:
     >>> import torch
@@ -199,6 +199,7 @@ def render_marched_stopping_early(
     rgb = origins.new_zeros((rays, 3))
     depth = origins.new_zeros(rays)
     skipped = origins.new_zeros(rays)  # weight left without colour, per ray
+    coloured_weight = origins.new_zeros(rays)  # weight with colour, per ray
     with stage("spans", items=rays):
         span_ray, span_first, span = occupied_spans(occupancy, origins, directions, t_near, t_far, step, steps)
     counts = torch.bincount(span_ray, minlength=rays)
@@ -239,8 +240,9 @@ def render_marched_stopping_early(
         faint_sum = torch.cumsum(weights * faint, dim=1) + skipped.index_select(0, active)[:, None]
         coloured = lit & ~(faint & (faint_sum <= SKIPPED_WEIGHT))
         skipped.index_add_(0, active, (weights * (lit & ~coloured)).sum(dim=1))
+        coloured_weight.index_add_(0, active, (weights * coloured).sum(dim=1))
         wanted = coloured.view(-1).index_select(0, index)
-        with stage("colour", items=int(wanted.sum())):
+        with stage("colour", items=wanted.sum()):
             colour = colour_fn(positions[wanted], ray_directions.index_select(0, sample_ray[wanted]))
         rgb.index_add_(0, active, accumulate(weights * coloured, colour.new_zeros((deltas.numel(), 3)).index_put_(
             (index[wanted],), colour).view(*deltas.shape, 3)))
@@ -250,8 +252,10 @@ def render_marched_stopping_early(
         taken += width
         width = min(2 * width, MAX_INFERENCE_SPANS)
         active = active[(leaving > OPAQUE_TRANSMITTANCE) & (ray_counts > taken)]
+    # The skipped weight takes the coloured samples' weighted mean colour (a ratio of sums of
+    # the same weights, so within the colours' range); a ray with none keeps it black.
+    mean_colour = rgb / coloured_weight.clamp_min(torch.finfo(rgb.dtype).tiny)[:, None]
+    rgb = rgb + torch.where(coloured_weight[:, None] > 0, mean_colour * skipped[:, None], 0.0)
     opacity = 1.0 - transmittance
-    coloured_weight = opacity - skipped
-    rgb = torch.where(coloured_weight[:, None] > 0, rgb * (opacity / coloured_weight.clamp_min(1e-12))[:, None], rgb)
     return RenderOutput(rgb=rgb + transmittance[:, None] * background, depth=depth, opacity=opacity,
                         weights=None, t_edges=None)

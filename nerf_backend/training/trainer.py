@@ -398,7 +398,9 @@ class _Training:
         with stage("loss", items=rays):
             errors = [F.mse_loss(output.rgb.float(), target) for output in outputs]
             loss = torch.stack(errors).sum()
-            if not torch.isfinite(loss):
+            # Reading the loss waits for the device: on a GPU only when the step is logged
+            # (a non-finite weight is caught before any checkpoint all the same).
+            if (device.type == "cpu" or (self.iteration + 1) % config.log_every == 0) and not torch.isfinite(loss):
                 self._diverged(f"loss {loss.item()}")
         parameters = sum(p.numel() for p in model.parameters())
         with stage("backward", items=parameters):

@@ -1,0 +1,89 @@
+"""Render speed, side by side in one process: the inference march of an earlier commit against
+the working tree's, on the same trained run, the same test views and the same threads.
+
+    python tools/compare_render_speed.py RUN DATASET [--baseline b4fbebe] [--views 0,5,10,15]
+
+Each side renders every view twice over (alternating, so both meet the same machine); the
+median seconds per view, the mean PSNR against the dataset's test views and the largest pixel
+difference between the two sides are printed. The baseline's ``marcher.py`` is read with
+``git show`` and loaded beside the current one; only the march differs, the model is the same.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import nerf_backend.models.marched as marched  # noqa: E402
+from nerf_backend.data.dataset import load_split  # noqa: E402
+from nerf_backend.data.run_folder import RunFolder  # noqa: E402
+from nerf_backend.evaluation.inference import load_trained_model  # noqa: E402
+from nerf_backend.evaluation.render_views import render_image  # noqa: E402
+from nerf_backend.metrics.image_metrics import psnr  # noqa: E402
+
+
+def baseline_march(revision: str):
+    """``render_marched_stopping_early`` as it was at ``revision``."""
+    source = subprocess.run(["git", "show", f"{revision}:nerf_backend/model_components/marcher.py"], cwd=ROOT,
+                            check=True, capture_output=True, text=True).stdout
+    folder = Path(tempfile.mkdtemp())
+    path = folder / "baseline_marcher.py"
+    path.write_text(source)
+    # Loaded as a module of the package, so its relative imports resolve to today's helpers.
+    name = "nerf_backend.model_components._baseline_marcher"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module.render_marched_stopping_early
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", type=Path)
+    parser.add_argument("dataset", type=Path)
+    parser.add_argument("--baseline", default="b4fbebe", help="the commit to compare with (default: before issue 24)")
+    parser.add_argument("--views", default="0,5,10,15")
+    args = parser.parse_args()
+    model, ray_bounds, _ = load_trained_model(RunFolder(args.run), torch.device("cpu"))
+    split = load_split(args.dataset, "test")
+    views = [int(v) for v in args.views.split(",")]
+    sides = {"baseline": baseline_march(args.baseline), "current": marched.render_marched_stopping_early}
+    seconds: dict[str, list[float]] = {name: [] for name in sides}
+    images: dict[str, list[np.ndarray]] = {name: [] for name in sides}
+    for repeat in range(2):
+        for name, march in sides.items():
+            marched.render_marched_stopping_early = march
+            for view in views:
+                start = time.perf_counter()
+                image = render_image(model, split.intrinsics, split.poses[view], ray_bounds)
+                seconds[name].append(time.perf_counter() - start)
+                if repeat == 0:
+                    images[name].append(image.rgb)
+    marched.render_marched_stopping_early = sides["current"]
+    width, height = split.intrinsics.width, split.intrinsics.height
+    print(f"{args.run} on {args.dataset}: {width}×{height}, views {views}, {torch.get_num_threads()} threads")
+    for name in sides:
+        scores = [psnr(image, split.rgb_on_white(view).numpy()) for image, view in zip(images[name], views)]
+        print(f"  {name:8s} median {statistics.median(seconds[name]):.3f} s a view "
+              f"(all: {', '.join(f'{s:.2f}' for s in seconds[name])}), mean PSNR {np.mean(scores):.3f} dB")
+    ratio = statistics.median(seconds["baseline"]) / statistics.median(seconds["current"])
+    difference = max(float(np.abs(a - b).max()) for a, b in zip(images["baseline"], images["current"]))
+    print(f"  speed-up {ratio:.2f}×; largest pixel difference {difference:.2e}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
