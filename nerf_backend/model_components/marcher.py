@@ -97,22 +97,6 @@ def lit_samples(density_fn: DensityFn, positions: Tensor, deltas: Tensor, index:
     return index[transmittance.view(-1).index_select(0, index) > OPAQUE_TRANSMITTANCE]
 
 
-def colour_where_visible(colour_fn: ColourFn, positions: Tensor, directions: Tensor, density: Tensor,
-                         transmittance: Tensor) -> Tensor:
-    """Colour ``[R, S, 3]``, evaluated only for samples with density that light still
-    reaches (transmittance above ``OPAQUE_TRANSMITTANCE``): everything skipped behind that
-    point adds less than ``OPAQUE_TRANSMITTANCE`` to the pixel, whatever its colour.
-
-    Why not skip samples of low *weight* instead: a young field's samples all weigh little,
-    so none would get a colour, each would count as black, and every bright pixel would push
-    density down: a large white object then trains to empty space."""
-    samples = density.shape[1]
-    visible = (density.detach() > 0) & (transmittance.detach() > OPAQUE_TRANSMITTANCE)
-    index = visible.view(-1).nonzero().squeeze(1)
-    colour = colour_fn(positions.view(-1, 3).index_select(0, index), directions.index_select(0, index // samples))
-    return positions.new_zeros((positions.shape[0] * samples, 3)).index_put((index,), colour).view(positions.shape)
-
-
 def render_marched(
     origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, *, density_fn: DensityFn,
     field_fn: FieldFn, occupancy: OccupancyGrid, step: float, steps: int, background: Tensor | float,
@@ -123,8 +107,14 @@ def render_marched(
 
     Samples in empty cells are dropped, then those hidden behind opaque ones (found with
     ``density_fn``, without gradients: it may be a cheaper form of the same density); only
-    the rest go through ``field_fn``. ``offset [R, 1]`` in [0, 1) shortens each ray's first
-    step (random in training: unbiased, and every step still covered).
+    the rest go through ``field_fn``, colour included, however little they weigh.
+    ``offset [R, 1]`` in [0, 1) shortens each ray's first step (random in training:
+    unbiased, and every step still covered).
+
+    Why not skip samples of low *weight* in training: a young field's samples all weigh
+    little, so none would get a colour, each would count as black, and every bright pixel
+    would push density down: a large white object then trains to empty space. (Inference
+    leaves only a bounded share of a trained field's weight uncoloured.)
     """
     if offset is None:
         offset = origins.new_zeros((origins.shape[0], 1))
@@ -232,8 +222,8 @@ def render_marched_stopping_early(
         round_weights, round_transmittance = render_weights(density, deltas)
         entering = transmittance.index_select(0, active)
         weights = round_weights * entering[:, None]
-        # Colour where light still reaches (see colour_where_visible), of the samples with
-        # density, but for the faintest: up to SKIPPED_WEIGHT of each ray's weight is left
+        # Colour where light still reaches (what lies behind adds under 1e-4), of the samples
+        # with density, but for the faintest: up to SKIPPED_WEIGHT of each ray's weight is left
         # without colour and given its other samples' mean colour at the end.
         lit = (density > 0) & ((round_transmittance * entering[:, None]) > OPAQUE_TRANSMITTANCE)
         faint = lit & (weights < SKIPPED_WEIGHT)
