@@ -226,7 +226,7 @@ def _run(args: argparse.Namespace) -> int:
         print(f"written {args.out / 'bench.json'}, {args.out / 'bench.md'}, {args.out / 'bench.png'}")
         return 0
 
-    if args.command == "bench-step" and model_class(preset_config(args.preset).model).uses_occupancy_prior:
+    if args.command == "bench-step" and issubclass(model_class(preset_config(args.preset).model), MarchedModel):
         overrides = tuple(args.overrides) + ((f"rays_per_batch={args.rays}",) if args.rays else ())
         report = profile_marched_step(args.dataset, args.preset, args.steps or 50, args.out, seed=args.seed,
                                       warmup_seconds=args.warmup_seconds, overrides=overrides,
