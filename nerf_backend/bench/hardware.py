@@ -8,6 +8,8 @@ import time
 
 import torch
 
+from ..core.devices import synchronise
+
 
 def _best_seconds(work, repeats: int) -> float:
     work()  # warm-up: allocation and first-touch costs are not the machine's rate
@@ -33,8 +35,7 @@ def measure_hardware(device: torch.device, repeats: int = 3, table_bytes: int = 
     def synchronised(work):
         def run():
             work()
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
+            synchronise(device)
         return run
 
     a = torch.randn(2048, 2048, device=device)

@@ -18,9 +18,11 @@ from __future__ import annotations
 import time
 from collections import defaultdict
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Callable, Iterator
 
 import torch
+
+from .devices import synchronise
 
 _active: "StageTimer | None" = None
 
@@ -34,12 +36,6 @@ class StageTimer:
         self.seconds: dict[str, float] = defaultdict(float)
         self.items: dict[str, int] = defaultdict(int)
 
-    def synchronise(self) -> None:
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-        elif self.device.type == "mps":
-            torch.mps.synchronize()
-
     def __enter__(self) -> "StageTimer":
         global _active
         _active = self
@@ -51,19 +47,19 @@ class StageTimer:
 
 
 @contextmanager
-def stage(name: str, items: "int | torch.Tensor" = 0) -> Iterator[None]:
+def stage(name: str, items: "int | torch.Tensor | Callable[[], int]" = 0) -> Iterator[None]:
     """Time the block as stage ``name`` when a ``StageTimer`` is entered; else nothing.
-    ``items`` may be a tensor (a count on the device): it is read only while profiling, so
-    a normal run never waits for the device to count."""
+    ``items`` may be a tensor (a count on the device) or a function: either is read only
+    while profiling, so a normal run neither waits for the device nor counts."""
     timer = _active
     if timer is None:
         yield
         return
-    timer.synchronise()
+    synchronise(timer.device)
     start = time.perf_counter()
     try:
         yield
     finally:
-        timer.synchronise()
+        synchronise(timer.device)
         timer.seconds[name] += time.perf_counter() - start
-        timer.items[name] += int(items)
+        timer.items[name] += int(items() if callable(items) else items)

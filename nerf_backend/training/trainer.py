@@ -402,7 +402,9 @@ class _Training:
             # (a non-finite weight is caught before any checkpoint all the same).
             if (device.type == "cpu" or (self.iteration + 1) % config.log_every == 0) and not torch.isfinite(loss):
                 self._diverged(f"loss {loss.item()}")
-        parameters = sum(p.numel() for p in model.parameters())
+        def parameters() -> int:  # counted only while profiling
+            return sum(p.numel() for p in model.parameters())
+
         with stage("backward", items=parameters):
             self.optimizer.zero_grad(set_to_none=True)
             self.scaler.scale(loss).backward()
