@@ -37,10 +37,13 @@ def _stage(name: str, command: list[str], timings: dict[str, float]) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m nerf_backend.demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("out/demo"))
-    parser.add_argument("--resolution", type=int, default=100)
+    # 400×400: the turntable's 800×600 frames come out sharp (32.86 dB against Cycles, where a
+    # model trained on 100×100 views scored 27.88); fewer val and test views than the
+    # protocol's, since each 400×400 view costs about 2 s of Cycles here.
+    parser.add_argument("--resolution", type=int, default=400)
     parser.add_argument("--train-views", type=int, default=100)
-    parser.add_argument("--val-views", type=int, default=10)
-    parser.add_argument("--test-views", type=int, default=50)
+    parser.add_argument("--val-views", type=int, default=5)
+    parser.add_argument("--test-views", type=int, default=20)
     parser.add_argument("--samples", type=int, default=64, help="Cycles samples per pixel")
     # auto: measured best at equal time by `python -m nerf_backend bench out/demo/dataset
     # --presets preview,fast,auto --budget-seconds 120` on 2 CPU cores (test PSNR after 120 s:

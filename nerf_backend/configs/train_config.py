@@ -43,6 +43,10 @@ class TrainConfig:
     # "protocol" for datasets without one).
     ray_bounds: str = "protocol"
     rays_per_batch: int = 1024
+    # Coarse-to-fine images (data/image_pyramid.py): while the model still holds only coarse
+    # detail (a grid before its last upsampling), its rays come from the images downsampled
+    # to that detail, by powers of two; the full size once it holds its final detail.
+    coarse_images: bool = False
     # Train on only the first N training views (the paper's 25/50/100-view ablation).
     max_train_views: int | None = None
     # The schedule's length: learning-rate decay, grid growth and centre crops are set in
@@ -122,6 +126,7 @@ class TrainConfig:
                                             "upsample_iterations": tuple(values["grid"]["upsample_iterations"])})
         values["adam_betas"] = tuple(values["adam_betas"])
         values.setdefault("schedule", "iterations")  # runs from before budget schedules
+        values.setdefault("coarse_images", False)  # runs from before coarse-to-fine images
         # Runs from before the hash field have no "hash" group: its defaults.
         values["hash"] = HashFieldConfig(**values.get("hash", {}))
         return cls(**values)

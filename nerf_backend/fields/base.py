@@ -82,6 +82,12 @@ class MarchableField(nn.Module):
         the encoding learning rate, every other parameter the network one."""
         return []
 
+    def coarse_detail(self) -> float | None:
+        """While the field grows toward finer detail on its schedule: the size (world units)
+        of the finest detail it holds now (what coarse-to-fine training downsamples the
+        images to); None once it holds its final detail, or if it never grows."""
+        return None
+
     def before_step(self, scheduled: int) -> bool:
         """Schedules of the field's own (a grid's upsampling), at ``scheduled`` steps into
         the run's schedule (``Model.before_step``). True when the parameters

@@ -152,6 +152,12 @@ class GridField(MarchableField):
     def encoding_parameters(self) -> list[nn.Parameter]:
         return [*self.density_grid.parameters(), *self.appearance_grid.parameters()]
 
+    def coarse_detail(self) -> float | None:
+        """The cell's shortest side while the grid is coarser than its final resolution."""
+        if self.resolution >= self.config.resolution:
+            return None
+        return min(side / cells for side, cells in zip(self.extent, self.occupancy_cells()))
+
     def before_step(self, scheduled: int) -> bool:
         """Upsample on schedule (coarse-to-fine)."""
         if self.resolution_after(scheduled) == self.resolution:

@@ -90,6 +90,12 @@ class Model(nn.Module):
         were replaced (the optimiser must be rebuilt)."""
         return False
 
+    def coarse_detail(self) -> float | None:
+        """The finest detail (world units) the model holds now while it is still growing
+        toward finer detail on its schedule; None when it holds its final detail (or has no
+        such schedule): the trainer then samples rays from the full-size images."""
+        return None
+
     def match_state(self, state: dict[str, Tensor]) -> None:
         """Take the shapes the checkpoint ``state`` was saved with, so its tensors load."""
 

@@ -112,6 +112,9 @@ class MarchedModel(Model):
             self.update_occupancy()
         return replaced
 
+    def coarse_detail(self) -> float | None:
+        return self.field.coarse_detail()
+
     def match_state(self, state: dict[str, Tensor]) -> None:
         field_state = {key.removeprefix("field."): value for key, value in state.items() if key.startswith("field.")}
         if self.field.match_state(field_state):

@@ -23,6 +23,7 @@ from ..core.files import write_png
 from ..core.progress import Progress
 from ..core.stage_timer import stage
 from ..data.dataset import DatasetSplit, composite, load_scene_bounds, load_scene_profile, load_split
+from ..data.image_pyramid import ImageLevel, ImagePyramid, level_factor
 from ..data.occupancy_prior import PRIOR_KINDS, OccupancyPrior, load_occupancy_prior
 from ..data.run_folder import IN_USE, LOCK_NAME, RunFolder
 from ..evaluation.render_views import render_image
@@ -30,7 +31,7 @@ from ..metrics.image_metrics import mse_to_psnr, psnr
 from ..model_components.ray_bounds import RayBounds, choose_ray_bounds
 from ..models.base import Model
 from ..models.registry import build_model, model_class
-from .auto import auto_config
+from .auto import auto_config, pixel_footprint
 from .collapse_guard import CollapseGuard, Verdict, blank_psnr, recovery_config
 
 
@@ -143,11 +144,11 @@ def _load_val(dataset: Path) -> DatasetSplit | None:
 
 
 def sample_ray_batch(
-    split: DatasetSplit, batch: int, generator: torch.Generator, precrop_fraction: float | None
+    rgba: torch.Tensor, batch: int, generator: torch.Generator, precrop_fraction: float | None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Random (image, pixel) indices: ``image [B]`` and row-major ``pixel [B]``, drawn from
-    the central ``precrop_fraction`` of each image when given."""
-    count, height, width = split.rgba.shape[:3]
+    """Random (image, pixel) indices into images ``rgba [N, H, W, 4]``: ``image [B]`` and
+    row-major ``pixel [B]``, drawn from the central ``precrop_fraction`` of each image when given."""
+    count, height, width = rgba.shape[:3]
     image = torch.randint(count, (batch,), generator=generator)
     if precrop_fraction is None:
         x = torch.randint(width, (batch,), generator=generator)
@@ -302,7 +303,12 @@ class _Training:
         self.batch_generator = torch.Generator().manual_seed(plan.seed)
         self.sample_generator = torch.Generator(device=self.device).manual_seed(plan.seed + 1)
         self.iteration, self.train_seconds = 0, 0.0
-        self.rgba = plan.train_split.rgba.to(self.device)
+        self.images = ImagePyramid(plan.train_split.rgba.to(self.device), plan.train_split.intrinsics)
+        # Coarse-to-fine images: the size of a full-size pixel on the scene, which each level's
+        # pixels are measured against (None: always the full size).
+        self.pixel_size = (pixel_footprint(plan.train_split, plan.ray_bounds.box)
+                           if self.config.coarse_images and plan.ray_bounds.box is not None else None)
+        self.image_level: ImageLevel | None = None
         self.poses = plan.train_split.poses.to(self.device)
         self.score: _ViewScore | None = None
         self.collapse: Verdict | None = None
@@ -368,21 +374,24 @@ class _Training:
         config, device, model = self.config, self.device, self.model
         steps = self.iteration - self.restart["start_iteration"]
         scheduled = self._scheduled_step(steps)
+        # Before the clock: making a downsampled level is loading, once a level (0.5-1 s for
+        # 100 views at 800×800 on 2 CPU cores), as reading the dataset is.
+        images = self._images()
         step_start = time.perf_counter()
-        width = self.rgba.shape[2]
         precrop = config.precrop_fraction if scheduled < config.precrop_iterations else None
         rays = config.rays_per_batch
         with stage("data", items=rays):
-            image_index, pixel_index = sample_ray_batch(self.plan.train_split, rays, self.batch_generator, precrop)
+            width = images.intrinsics.width
+            image_index, pixel_index = sample_ray_batch(images.rgba, rays, self.batch_generator, precrop)
             image_index, pixel_index = image_index.to(device), pixel_index.to(device)
-            pixels_rgba = self.rgba[image_index, pixel_index // width, pixel_index % width]
+            pixels_rgba = images.rgba[image_index, pixel_index // width, pixel_index % width]
             if config.random_background:
                 background = torch.rand((len(pixel_index), 3), generator=self.batch_generator).to(device)
             else:
                 background = torch.ones((), device=device)
             target = composite(pixels_rgba, background)
         with stage("rays", items=rays):
-            origins, directions = camera_rays(self.plan.train_split.intrinsics, self.poses[image_index],
+            origins, directions = camera_rays(images.intrinsics, self.poses[image_index],
                                               pixel_centres(width, pixel_index))
             t_near, t_far = self.plan.ray_bounds(origins, directions)
         with stage("upkeep"):  # the model's schedule: grid growth, occupancy refreshes
@@ -419,7 +428,24 @@ class _Training:
             self.progress.show(loss=f"{loss.item():.4f}", psnr=f"{batch_psnr:.2f}")
             self.run_folder.log_event("train", iteration=self.iteration, loss=loss.item(), psnr=batch_psnr,
                                       lr=config.learning_rate_at(scheduled), scheduled=scheduled,
+                                      image_size=[images.intrinsics.width, images.intrinsics.height],
                                       elapsed_s=self.train_seconds)
+
+    def _images(self) -> ImageLevel:
+        """The training images at the size the model's detail asks for now: downsampled
+        while a grid is still coarse (``coarse_images``), full size once it holds its final
+        detail. A change of size is said above the progress bar."""
+        full = self.images.full.intrinsics
+        detail = self.model.coarse_detail() if self.pixel_size is not None else None
+        factor = 1 if detail is None else level_factor(self.pixel_size, detail, full.width, full.height)
+        level = self.images.level(factor)
+        if self.image_level is None or level.factor != self.image_level.factor:
+            if self.image_level is not None or factor != 1:
+                size = f"{level.intrinsics.width}×{level.intrinsics.height}"
+                self.progress.note(f"training on {size} images" + (f" (1/{factor} size, the model's detail)"
+                                                                    if factor > 1 else " (full size)"))
+            self.image_level = level
+        return level
 
     def _scheduled_step(self, steps: int) -> int:
         """Where this start of the run is in its schedule after ``steps`` steps: by the
@@ -462,7 +488,7 @@ class _Training:
             self._report_collapse(self.collapse, "stopped: it had already been restarted once", final=True)
             return False
         self.config, changes, reasons = recovery_config(self.config,
-                                                        has_transparency=bool((self.rgba[..., 3] < 255).any()))
+                                                        has_transparency=bool((self.images.full.rgba[..., 3] < 255).any()))
         action = "restarted from a new start with " + "; ".join(reasons)
         self.plan.decisions["collapse_recovery"] = {"value": changes, "at_iteration": self.iteration,
                                                     "reason": f"{self.collapse.describe()}: {action}"}
