@@ -487,8 +487,8 @@ class _Training:
         if self.restart["attempt"] >= 1:
             self._report_collapse(self.collapse, "stopped: it had already been restarted once", final=True)
             return False
-        self.config, changes, reasons = recovery_config(self.config,
-                                                        has_transparency=bool((self.images.full.rgba[..., 3] < 255).any()))
+        transparent = bool((self.images.full.rgba[..., 3] < 255).any())
+        self.config, changes, reasons = recovery_config(self.config, has_transparency=transparent)
         action = "restarted from a new start with " + "; ".join(reasons)
         self.plan.decisions["collapse_recovery"] = {"value": changes, "at_iteration": self.iteration,
                                                     "reason": f"{self.collapse.describe()}: {action}"}
