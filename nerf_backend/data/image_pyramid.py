@@ -27,7 +27,8 @@ def block_intrinsics(intrinsics: Intrinsics, factor: int) -> Intrinsics:
     """The intrinsics of images downsampled by ``factor`` in whole blocks (a remainder of
     fewer than ``factor`` rows or columns at the bottom and right is left out): pixel ``i``
     of the coarse image is the block of full-size pixels ``[factor·i, factor·i + factor)``,
-    whose centre ``factor·(i + 0.5)`` is the coarse pixel's centre ``i + 0.5``.
+    whose centre ``factor·(i + 0.5)`` is the coarse pixel's centre ``i + 0.5``. (Unlike
+    ``Intrinsics.scaled``, which keeps the whole field of view at a rounded size.)
 
     Example:
         >>> k = block_intrinsics(Intrinsics(801, 800, 1111.1, 1111.1, 400.5, 400.0), 4)

@@ -308,7 +308,7 @@ class _Training:
         # pixels are measured against (None: always the full size).
         self.pixel_size = (pixel_footprint(plan.train_split, plan.ray_bounds.box)
                            if self.config.coarse_images and plan.ray_bounds.box is not None else None)
-        self.image_level: ImageLevel | None = None
+        self.image_factor = 1  # the downsampling of the last step's images
         self.poses = plan.train_split.poses.to(self.device)
         self.score: _ViewScore | None = None
         self.collapse: Verdict | None = None
@@ -439,12 +439,11 @@ class _Training:
         detail = self.model.coarse_detail() if self.pixel_size is not None else None
         factor = 1 if detail is None else level_factor(self.pixel_size, detail, full.width, full.height)
         level = self.images.level(factor)
-        if self.image_level is None or level.factor != self.image_level.factor:
-            if self.image_level is not None or factor != 1:
-                size = f"{level.intrinsics.width}×{level.intrinsics.height}"
-                self.progress.note(f"training on {size} images" + (f" (1/{factor} size, the model's detail)"
-                                                                    if factor > 1 else " (full size)"))
-            self.image_level = level
+        if factor != self.image_factor:
+            size = f"{level.intrinsics.width}×{level.intrinsics.height}"
+            self.progress.note(f"training on {size} images"
+                               + (f" (1/{factor} size, the model's detail)" if factor > 1 else " (full size)"))
+            self.image_factor = factor
         return level
 
     def _scheduled_step(self, steps: int) -> int:
