@@ -37,14 +37,16 @@ def _stage(name: str, command: list[str], timings: dict[str, float]) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m nerf_backend.demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("out/demo"))
-    # 400×400: the turntable's 800×600 frames come out sharp (32.86 dB against Cycles, where a
+    # 400×400: the turntable's 800×600 frames come out sharp (32.65 dB against Cycles, where a
     # model trained on 100×100 views scored 27.88); fewer val and test views than the
-    # protocol's, since each 400×400 view costs about 2 s of Cycles here.
+    # protocol's, and 32 samples (1 s a 400×400 view in Cycles here), keep the demo at 6 minutes.
     parser.add_argument("--resolution", type=int, default=400)
     parser.add_argument("--train-views", type=int, default=100)
     parser.add_argument("--val-views", type=int, default=5)
     parser.add_argument("--test-views", type=int, default=20)
-    parser.add_argument("--samples", type=int, default=64, help="Cycles samples per pixel")
+    # 32: 64 gave 36.12 dB on the test views and 32.86 dB on the turntable against 35.76 and
+    # 32.65, for a Cycles stage twice as long (README).
+    parser.add_argument("--samples", type=int, default=32, help="Cycles samples per pixel")
     # auto: measured best at equal time by `python -m nerf_backend bench out/demo/dataset
     # --presets preview,fast,auto --budget-seconds 120` on 2 CPU cores (test PSNR after 120 s:
     # auto 36.05 dB, fast 35.22 dB, preview 26.17 dB; docs/bench_demo_100px.md).
@@ -62,14 +64,20 @@ def main(argv: list[str] | None = None) -> int:
     dataset, run = args.out / "dataset", args.out / "run"
     python = sys.executable
     timings: dict[str, float] = {}
-    if all((dataset / f"transforms_{split}.json").exists() for split in SPLITS):
+    complete = all((dataset / f"transforms_{split}.json").exists() for split in SPLITS)
+    differences = _dataset_differences(dataset, args) if complete else []
+    if complete and not differences:
         print(f"== dataset: reusing the complete dataset in {dataset}")
     else:
         command = [python, "-m", "datasets_gen", "--demo", "--out", str(dataset),
                    "--resolution", str(args.resolution), "--train-views", str(args.train_views),
                    "--val-views", str(args.val_views), "--test-views", str(args.test_views),
                    "--samples", str(args.samples), "--seed", str(args.seed)]
-        if dataset.exists():
+        if differences:  # an earlier demo's (the defaults have changed): its run goes with it
+            print(f"== dataset: {dataset} was rendered with other settings ({'; '.join(differences)}): "
+                  f"rendering it again and training afresh")
+            command.append("--overwrite")
+        elif dataset.exists():
             print(f"== dataset: {dataset} is incomplete (an interrupted demo); resuming it")
             command.append("--resume")
         _stage("dataset", command, timings)
@@ -78,7 +86,10 @@ def main(argv: list[str] | None = None) -> int:
              "--iters", str(args.iterations), "--seed", str(args.seed)]
     if args.train_seconds is not None:
         train += ["--max-seconds", str(args.train_seconds)]
-    train += ["--resume"] if (run / "config.json").exists() else ["--preset", args.preset]
+    if differences:
+        train += ["--preset", args.preset, "--overwrite"]
+    else:
+        train += ["--resume"] if (run / "config.json").exists() else ["--preset", args.preset]
     _stage("train", train, timings)
     evaluate = [python, "-m", "nerf_backend", "eval", str(run), "--split", "test"]
     if (dataset / "scene_geometry.ply").is_file():
@@ -119,6 +130,21 @@ def main(argv: list[str] | None = None) -> int:
           + f", PSNR {animation['mean']['psnr']:.2f} dB against Cycles: {animation['side_by_side_video']}")
     print(f"   report:  {(run / 'report' / 'index.html').resolve()}")
     return 0
+
+
+def _dataset_differences(dataset: Path, args: argparse.Namespace) -> list[str]:
+    """How the complete dataset in the demo's folder differs from what this demo renders
+    (size, samples, view counts, seed, as its ``transforms_train.json`` records them); empty
+    when it is the same."""
+    try:
+        settings = json.loads((dataset / "transforms_train.json").read_text())["generator"]["settings"]
+        have = {"size": f"{settings['camera']['resolution_x']}×{settings['camera']['resolution_y']}",
+                "samples": settings["samples"], "views": settings["views"], "seed": settings["seed"]}
+    except (OSError, ValueError, KeyError, TypeError):
+        return ["its transforms_train.json does not record them"]
+    wanted = {"size": f"{args.resolution}×{args.resolution}", "samples": args.samples, "seed": args.seed,
+              "views": {"train": args.train_views, "val": args.val_views, "test": args.test_views}}
+    return [f"{key} {have[key]} instead of {wanted[key]}" for key in wanted if have[key] != wanted[key]]
 
 
 def _last_done_event(run: Path) -> dict | None:
