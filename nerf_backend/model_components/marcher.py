@@ -154,7 +154,7 @@ def occupied_spans(occupancy: OccupancyGrid, origins: Tensor, directions: Tensor
         >>> ray, first, span = occupied_spans(grid, torch.tensor([[-3.0, 0.01, 0.01]]),
         ...                                   torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([2.0]),
         ...                                   torch.tensor([4.0]), step=1 / 16, steps=33)
-        >>> span, first.tolist()  # the speck's skip cell (x from 0.5) and its neighbour (x from 0)
+        >>> span, first.tolist()  # the spans whose midpoints lie within 4 cells of the line
         (8, [16, 24])
     """
     span = occupancy.skip_span_steps(step)
