@@ -45,6 +45,13 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _curve_points(text: str) -> int | tuple[float, ...]:
+    """``--points``: a count, or the budgets themselves (``60,120,300``)."""
+    if "," not in text:
+        return _positive_int(text)
+    return tuple(_positive_float(part) for part in text.split(",") if part.strip())
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m nerf_backend", description="Train, render, score and benchmark NeRFs of Blender scenes.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
@@ -84,7 +91,10 @@ def build_parser() -> argparse.ArgumentParser:
                             "order against the paper's")
     bench.add_argument("--budget-seconds", type=_positive_float, default=None, help="training seconds per variant")
     bench.add_argument("--iters", type=_positive_int, default=None, help="or: iterations per variant")
-    bench.add_argument("--points", type=_positive_int, default=6, help="evaluations along each curve")
+    bench.add_argument("--points", type=_curve_points, default=6,
+                       help="evaluations along each curve: a count, spaced quadratically, or the budgets themselves "
+                            "(seconds or iterations, comma-separated: 60,120,300,600); the last is always the whole "
+                            "budget")
     bench.add_argument("--curve-views", type=_positive_int, default=8, help="test views scored at each point")
     bench.add_argument("--seed", type=int, default=0)
     bench.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])

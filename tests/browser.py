@@ -60,7 +60,8 @@ def load_page(page: Path, screenshot: Path, width: int = 1280) -> dict:
     binary = chromium_binary()
     if binary is None:
         raise FileNotFoundError("no Chromium binary (install Debian's chromium)")
-    with tempfile.TemporaryDirectory() as profile:
+    profile = tempfile.mkdtemp(prefix="chromium-profile-")
+    try:
         process = subprocess.Popen([binary, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", f"--window-size={width},900",
                                     "about:blank"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
@@ -105,7 +106,26 @@ def load_page(page: Path, screenshot: Path, width: int = 1280) -> dict:
         finally:
             process.terminate()
             process.wait(timeout=30)
+    finally:
+        _remove_profile(Path(profile))
     return {"requests": requests, **state}
+
+
+def _remove_profile(profile: Path, patience: float = 10.0) -> None:
+    """Remove Chromium's profile folder. Its helper processes can still write there for a
+    moment after the browser has exited (a test once failed on "Directory not empty"), so
+    removal is tried again for up to ``patience`` seconds."""
+    deadline = time.monotonic() + patience
+    while True:
+        try:
+            shutil.rmtree(profile)
+            return
+        except FileNotFoundError:
+            return
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.2)
 
 
 if __name__ == "__main__":

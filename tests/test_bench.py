@@ -24,14 +24,14 @@ from nerf_backend.bench.plain_nerf import PlainMLP, fourier_features
 def test_short_bench_writes_json_table_and_plot(tiny_demo_dataset, tmp_path):
     out = tmp_path / "bench"
     result = run_python("-m", "nerf_backend", "bench", str(tiny_demo_dataset), "--presets",
-                        "fast,auto,slim=preview+field.width=32", "--iters", "6", "--points", "2",
+                        "fast,auto,slim=preview+field.width=32", "--iters", "6", "--points", "2,6",
                         "--curve-views", "2", "--out", str(out))
     report = json.loads((out / "bench.json").read_text())
     assert [v["name"] for v in report["variants"]] == ["fast", "auto", "slim"]
     for variant in report["variants"]:
         curve = variant["curve"]
-        assert [p["iteration"] for p in curve] == sorted(p["iteration"] for p in curve)
-        assert curve[-1]["iteration"] == variant["final"]["iterations"] == 6
+        assert [p["iteration"] for p in curve] == [2, 6]  # the points asked for
+        assert variant["final"]["iterations"] == 6
         assert all(0 < p["train_seconds"] and 5 < p["psnr"] < 60 and 0 < p["ssim"] <= 1 for p in curve)
         assert variant["final"]["test_views"] == 4
         assert set(variant["time_to_psnr_s"]) == {"20", "25", "30"}
@@ -52,6 +52,15 @@ def test_short_bench_writes_json_table_and_plot(tiny_demo_dataset, tmp_path):
     with Image.open(out / "bench.png") as plot:
         assert plot.size[0] > 400 and plot.size[1] > 300
     assert "bench.json" in result.stdout
+
+
+def test_curve_points_beyond_the_budget_are_refused_before_any_training(tiny_demo_dataset, tmp_path):
+    out = tmp_path / "bench"
+    result = run_python("-m", "nerf_backend", "bench", str(tiny_demo_dataset), "--presets", "fast",
+                        "--budget-seconds", "60", "--points", "30,90", "--out", str(out), check=False)
+    assert result.returncode == 2
+    assert "bench --points: curve points 30, 90 must lie within the budget (60)" in result.stderr
+    assert not (out / "runs").exists()
 
 
 def test_time_to_reach_interpolates_between_points():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -173,10 +174,11 @@ def test_coarse_to_fine_schedule():
     assert model.occupancy.cells == (resolutions[1] - 1,) * 3
 
 
-def _solid_grid_model() -> GridModel:
-    """A fast model whose random grids hold dense blobs and empty space, occupancy updated."""
+def _solid_grid_model(render_alpha_threshold: float = 0.0) -> GridModel:
+    """A fast model whose random grids hold dense blobs and empty space, occupancy updated.
+    Rendering skips no more than training unless given a ``render_alpha_threshold``."""
     torch.manual_seed(3)
-    model = GridModel(PRESETS["fast"], BOX)
+    model = GridModel(dataclasses.replace(PRESETS["fast"], render_alpha_threshold=render_alpha_threshold), BOX)
     vertices = model.field.vertices
     model.resize((5, 5, 5))  # random values on a coarse grid, interpolated up: smooth blobs
     with torch.no_grad():
@@ -222,6 +224,68 @@ def test_inference_render_matches_the_training_march():
     assert (early.rgb - full.rgb).abs().max() < tolerance + SKIPPED_WEIGHT
     assert (early.opacity - full.opacity).abs().max() < tolerance
     assert (early.depth - full.depth).abs().max() < tolerance * float(far.max()) + 1e-4
+
+
+def test_rendering_skips_faint_cells_within_the_bound_they_set():
+    """Rendering drops the training grid's cells whose largest density cannot reach
+    ``render_alpha_threshold`` in one step (the grid field's cell maxima are exact). Each
+    dropped step would have taken at most that alpha, so a ray's opacity and colour move by
+    at most (its steps in dropped cells) × the threshold, over the early-stop tolerances."""
+    from nerf_backend.core.cameras import ray_box_intersection
+    from nerf_backend.model_components.marcher import march_edges
+    from nerf_backend.model_components.samplers import interval_midpoints
+
+    threshold = 1e-2
+    model = _solid_grid_model(render_alpha_threshold=threshold)
+    saved = set(model.state_dict())
+    kept = model.render_occupancy().occupied
+    assert set(model.state_dict()) == saved  # a derived grid: no part of the checkpoint
+    dropped = model.occupancy.occupied & ~kept
+    assert not (kept & ~model.occupancy.occupied).any()  # never a cell training skips
+    assert dropped.sum() > 0.05 * model.occupancy.occupied.sum() and kept.any()
+    torch.manual_seed(8)
+    origins = torch.nn.functional.normalize(torch.randn(3000, 3), dim=-1) * 4.0
+    directions = torch.nn.functional.normalize(torch.rand(3000, 3) * 2.0 - 1.0 - origins, dim=-1)
+    near, far, _ = ray_box_intersection(origins, directions, torch.tensor(BOX.box_min), torch.tensor(BOX.box_max))
+    with torch.enable_grad():
+        full = model(origins, directions, near, far)[0]
+    with torch.no_grad():
+        pruned = model(origins, directions, near, far)[0]
+    # The march's steps whose midpoints lie in dropped cells, per ray.
+    t_edges = march_edges(near, far, model.step, torch.zeros(len(origins), 1), 0, model.samples_per_ray)
+    t_mid = interval_midpoints(t_edges)
+    lengths = t_edges[:, 1:] - t_edges[:, :-1]
+    points = origins[:, None] + directions[:, None] * t_mid[..., None]
+    grid = OccupancyGrid(model.occupancy.box_min, model.occupancy.box_max, model.occupancy.cells)
+    grid.occupied.copy_(dropped)
+    in_dropped = (grid.query(points.view(-1, 3)).view(lengths.shape) & (lengths > 0)).sum(dim=1)
+    bound = in_dropped * threshold + GridModel.OPAQUE_TRANSMITTANCE + 1e-5
+    assert (in_dropped > 0).float().mean() > 0.2 and (bound < 0.5).float().mean() > 0.5  # the bound says something
+    assert ((pruned.opacity - full.opacity).abs() <= bound).all()
+    assert ((pruned.rgb - full.rgb).abs().amax(dim=1) <= bound + SKIPPED_WEIGHT).all()
+    assert (pruned.opacity - full.opacity).abs().max() > 1e-4  # and the skipping happened
+
+
+def test_a_young_faint_field_still_renders_its_denser_part():
+    """A new field is faint everywhere, far below the render threshold: rendering then keeps
+    the cells above the cells' mean instead of dropping everything (nerfacc's rule)."""
+    torch.manual_seed(9)
+    model = GridModel(PRESETS["fast"], BOX)
+    model.update_occupancy()
+    cell_max = model.field.cell_max_density()
+    assert float(cell_max.max()) < model.render_density_threshold
+    kept = model.render_occupancy().occupied
+    assert torch.equal(kept, (cell_max > cell_max.mean()) & model.occupancy.occupied) and kept.any()
+
+
+def test_a_hash_field_renders_with_the_training_grid_until_it_has_an_estimate():
+    from nerf_backend.models.marched import HashModel
+
+    model = HashModel(PRESETS["hash"], BOX)
+    assert model.field.cell_max_density() is None
+    assert model.render_occupancy() is model.occupancy
+    model.update_occupancy()
+    assert model.render_occupancy() is not model.occupancy
 
 
 def test_occupied_spans_cover_every_occupied_step():

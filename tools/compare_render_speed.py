@@ -5,8 +5,10 @@ the working tree's, on the same trained run, the same test views and the same th
 
 Each side renders every view twice over (alternating, so both meet the same machine); the
 median seconds per view, the mean PSNR against the dataset's test views and the largest pixel
-difference between the two sides are printed. The baseline's ``marcher.py`` is read with
-``git show`` and loaded beside the current one; only the march differs, the model is the same.
+difference between the two sides are printed. The baseline's ``marcher.py`` and
+``occupancy.py`` are read with ``git show`` and loaded beside the current ones: the baseline
+marches the model's training occupancy grid with its own skip grid, the current side what the
+model renders with today (``render_occupancy``); the model is the same.
 """
 
 from __future__ import annotations
@@ -34,20 +36,35 @@ from nerf_backend.evaluation.render_views import render_image  # noqa: E402
 from nerf_backend.metrics.image_metrics import psnr  # noqa: E402
 
 
-def baseline_march(revision: str):
-    """``render_marched_stopping_early`` as it was at ``revision``."""
-    source = subprocess.run(["git", "show", f"{revision}:nerf_backend/model_components/marcher.py"], cwd=ROOT,
+def _load_baseline(revision: str, relative: str, name: str):
+    """The module at ``nerf_backend/RELATIVE`` as it was at ``revision``, loaded as a module of
+    the package (so its relative imports resolve to today's helpers)."""
+    source = subprocess.run(["git", "show", f"{revision}:nerf_backend/{relative}"], cwd=ROOT,
                             check=True, capture_output=True, text=True).stdout
-    folder = Path(tempfile.mkdtemp())
-    path = folder / "baseline_marcher.py"
+    path = Path(tempfile.mkdtemp()) / Path(relative).name
     path.write_text(source)
-    # Loaded as a module of the package, so its relative imports resolve to today's helpers.
-    name = "nerf_backend.model_components._baseline_marcher"
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
     spec.loader.exec_module(module)
-    return module.render_marched_stopping_early
+    return module
+
+
+def baseline_march(revision: str, model):
+    """``render_marched_stopping_early`` as it was at ``revision``, over the model's training
+    occupancy grid held in that revision's ``OccupancyGrid``."""
+    occupancy = _load_baseline(revision, "model_components/occupancy.py",
+                               "nerf_backend.model_components._baseline_occupancy")
+    march = _load_baseline(revision, "model_components/marcher.py",
+                           "nerf_backend.model_components._baseline_marcher").render_marched_stopping_early
+    trained = model.occupancy
+    grid = occupancy.OccupancyGrid(trained.box_min, trained.box_max, trained.cells).to(trained.occupied.device)
+    grid.occupied.copy_(trained.occupied)
+
+    def render(*args, occupancy, **kwargs):
+        return march(*args, occupancy=grid, **kwargs)
+
+    return render
 
 
 def main() -> int:
@@ -60,7 +77,7 @@ def main() -> int:
     model, ray_bounds, _ = load_trained_model(RunFolder(args.run), torch.device("cpu"))
     split = load_split(args.dataset, "test")
     views = [int(v) for v in args.views.split(",")]
-    sides = {"baseline": baseline_march(args.baseline), "current": marched.render_marched_stopping_early}
+    sides = {"baseline": baseline_march(args.baseline, model), "current": marched.render_marched_stopping_early}
     seconds: dict[str, list[float]] = {name: [] for name in sides}
     images: dict[str, list[np.ndarray]] = {name: [] for name in sides}
     for repeat in range(2):

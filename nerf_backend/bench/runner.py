@@ -73,7 +73,8 @@ def _geometry_record(dataset: Path) -> dict | None:
 
 
 def bench_variant(dataset: str, variant: Variant, out_dir: str, budget_seconds: float | None,
-                  iterations: int | None, points: int, curve_views: int, seed: int, device_name: str) -> dict:
+                  iterations: int | None, points: int | tuple[float, ...], curve_views: int, seed: int,
+                  device_name: str) -> dict:
     """Train and measure one variant (runs in a child process)."""
     device = resolve_device(device_name)
     test = load_split(dataset, "test")
@@ -135,10 +136,14 @@ def _raise_exit(signum, frame) -> None:
 
 
 def run_bench(dataset: Path, variants: list[Variant], out_dir: Path, budget_seconds: float | None,
-              iterations: int | None, points: int = 6, curve_views: int = 8, seed: int = 0,
+              iterations: int | None, points: int | tuple[float, ...] = 6, curve_views: int = 8, seed: int = 0,
               device: str = "auto", overwrite: bool = False) -> dict:
     if (budget_seconds is None) == (iterations is None):
         raise NerfError("bench: give exactly one of --budget-seconds or --iters")
+    try:
+        curve_points(budget_seconds, iterations, points)
+    except ValueError as exc:
+        raise NerfError(f"bench --points: {exc}") from None
     if out_dir.exists() and any(out_dir.iterdir()) and not overwrite:
         raise NerfError(f"{out_dir}: bench folder exists and is not empty; pass --overwrite to replace it")
     out_dir.mkdir(parents=True, exist_ok=True)

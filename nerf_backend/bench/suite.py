@@ -133,12 +133,12 @@ def scene_summary(dataset: SuiteDataset, bench: dict, bench_dir: Path) -> dict:
     }
 
 
-def _plan(datasets: list[SuiteDataset], variants: list[Variant], budget: dict, points: int, curve_views: int,
+def _plan(datasets: list[SuiteDataset], variants: list[Variant], budget: dict, points: int | tuple[float, ...], curve_views: int,
           seed: int, device: str) -> dict:
     return {
         "datasets": {dataset.name: str(dataset.path.resolve()) for dataset in datasets},
         "variants": [{"name": v.name, "preset": v.preset, "overrides": list(v.overrides)} for v in variants],
-        "budget": budget, "points": points, "curve_views": curve_views, "seed": seed, "device": device,
+        "budget": budget, "points": list(points) if isinstance(points, tuple) else points, "curve_views": curve_views, "seed": seed, "device": device,
     }
 
 
@@ -207,8 +207,8 @@ def _check_folder(out_dir: Path, datasets: list[SuiteDataset], plan: dict, overw
 
 
 def run_suite(paths: list[Path], variants: list[Variant], out_dir: Path, budget_seconds: float | None,
-              iterations: int | None, points: int = 6, curve_views: int = 8, seed: int = 0, device: str = "auto",
-              overwrite: bool = False) -> dict:
+              iterations: int | None, points: int | tuple[float, ...] = 6, curve_views: int = 8, seed: int = 0,
+              device: str = "auto", overwrite: bool = False) -> dict:
     """Bench every dataset of ``paths`` into ``out_dir/NAME`` and write the summary; return it."""
     if (budget_seconds is None) == (iterations is None):
         raise NerfError("bench: give exactly one of --budget-seconds or --iters")

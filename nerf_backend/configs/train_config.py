@@ -34,6 +34,10 @@ class TrainConfig:
     occupancy_warmup: int = 16  # steps before empty space is skipped at all
     occupancy_every: int = 16
     occupancy_alpha_threshold: float = 1e-4  # cells that cannot reach this alpha in one step are empty
+    # Rendering (no gradients) also skips the cells that cannot reach this alpha in one step:
+    # faint haze a trained field leaves over empty space, which training keeps so that it can
+    # still be trained away.
+    render_alpha_threshold: float = 1e-2
     # Grid models: start the occupancy grid from the dataset's occupancy prior (Blender's
     # geometry, occupancy_prior.npz) and never mark a cell it leaves out: "surface" (cells
     # the surfaces pass through, with a margin), "solid" (those and what they enclose) or "none".

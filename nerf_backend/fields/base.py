@@ -59,7 +59,13 @@ class MarchableField(nn.Module):
 
     def occupancy_estimate(self) -> tuple[Tensor, float]:
         """The largest density in each occupancy cell ``[Gx, Gy, Gz]`` (an exact bound where
-        the field allows one, else an estimate) and the field's mean density."""
+        the field allows one, else an estimate) and the field's mean density; training calls
+        it on the occupancy grid's schedule (an estimate may move with each call)."""
+        raise NotImplementedError
+
+    def cell_max_density(self) -> Tensor | None:
+        """``occupancy_estimate``'s cell maxima as they stand, changing nothing (what
+        rendering prunes its grid with); None before the field has any."""
         raise NotImplementedError
 
     def sample_cost(self) -> dict[str, SampleCost]:

@@ -127,3 +127,6 @@ class HashField(MarchableField):
         sampled = torch.cat([self.density(chunk) for chunk in points.split(65536)]).view(self.cell_density.shape)
         self.cell_density.copy_(torch.maximum(self.cell_density * self.config.occupancy_decay, sampled))
         return self.cell_density, float(sampled.mean())
+
+    def cell_max_density(self) -> Tensor | None:
+        return self.cell_density if int(self.estimates) > 0 else None

