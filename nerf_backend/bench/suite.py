@@ -133,12 +133,13 @@ def scene_summary(dataset: SuiteDataset, bench: dict, bench_dir: Path) -> dict:
     }
 
 
-def _plan(datasets: list[SuiteDataset], variants: list[Variant], budget: dict, points: int | tuple[float, ...], curve_views: int,
-          seed: int, device: str) -> dict:
+def _plan(datasets: list[SuiteDataset], variants: list[Variant], budget: dict, points: int | tuple[float, ...],
+          curve_views: int, seed: int, device: str) -> dict:
     return {
         "datasets": {dataset.name: str(dataset.path.resolve()) for dataset in datasets},
         "variants": [{"name": v.name, "preset": v.preset, "overrides": list(v.overrides)} for v in variants],
-        "budget": budget, "points": list(points) if isinstance(points, tuple) else points, "curve_views": curve_views, "seed": seed, "device": device,
+        "budget": budget, "points": list(points) if isinstance(points, tuple) else points,
+        "curve_views": curve_views, "seed": seed, "device": device,
     }
 
 
