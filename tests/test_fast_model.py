@@ -288,6 +288,21 @@ def test_a_hash_field_renders_with_the_training_grid_until_it_has_an_estimate():
     assert model.render_occupancy() is not model.occupancy
 
 
+def test_widened_cells_equal_a_max_pool_over_the_cube():
+    """The skip grid's widening against its definition: the maximum over the (2r+1)³ cube
+    around each cell, here with max_pool3d, on a box that is not a cube and radii up to
+    larger than a side."""
+    from nerf_backend.model_components.occupancy import widened
+
+    torch.manual_seed(10)
+    cells = torch.rand(23, 9, 4) < 0.01
+    cells[22, 8, 3] = True  # a corner
+    for radius in (1, 2, 4, 6):
+        width = 2 * radius + 1
+        reference = torch.nn.functional.max_pool3d(cells.float()[None, None], width, stride=1, padding=radius)
+        assert torch.equal(widened(cells, radius), reference[0, 0] > 0)
+
+
 def test_occupied_spans_cover_every_occupied_step():
     """The skip pass is conservative: every march step whose midpoint lies in an occupied
     fine cell is inside a span ``occupied_spans`` returns, on a scattered occupancy."""
