@@ -154,8 +154,8 @@ def occupied_spans(occupancy: OccupancyGrid, origins: Tensor, directions: Tensor
         >>> ray, first, span = occupied_spans(grid, torch.tensor([[-3.0, 0.01, 0.01]]),
         ...                                   torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([2.0]),
         ...                                   torch.tensor([4.0]), step=1 / 16, steps=33)
-        >>> span, first.tolist()  # the spans whose midpoints lie within 4 cells of the line
-        (8, [16, 24])
+        >>> span, first.tolist()  # the spans whose midpoints lie within 6 cells of the line
+        (12, [12, 24])
     """
     span = occupancy.skip_span_steps(step)
     spans = -(-(steps - 1) // span)
