@@ -15,31 +15,32 @@ SUITE_SCENES ?= $(wildcard ../shared/scenes/*.blend)
 
 setup: $(STAMP)
 
-$(STAMP): requirements-dev.txt pyproject.toml
+$(STAMP): requirements-dev.txt pyproject.toml nerf_backend/requirements-no-deps.txt
 	$(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/pip install --upgrade --quiet pip
 	$(VENV)/bin/pip install --quiet -r requirements-dev.txt -e .
-	# lpips for its shipped LPIPS v0.1 linear weights only, without dependencies: it would pull
-	# torchvision, whose PyPI build does not import beside the CPU torch pinned here.
-	$(VENV)/bin/pip install --quiet --no-deps lpips==0.1.4
+	# lpips without its dependencies (the file says why).
+	$(VENV)/bin/pip install --quiet --no-deps -r nerf_backend/requirements-no-deps.txt
 	touch $(STAMP)
 
 demo: $(STAMP)
 	$(PY) -m nerf_backend.demo --out $(DEMO_DIR)
 
-# The default suite (1021 s in the last clean-clone CI run on 2 cores, set-up apart); the 15 slowest
-# tests are listed at the end. Exit code 5 (no tests ran) fails.
+# The default suite (about 20 minutes on 2 cores, set-up apart); pytest lists the 15 slowest
+# tests at the end. Exit code 5 (no tests ran) fails.
 test: $(STAMP)
 	$(PY) -m pytest -m "not slow and not blender_matrix and not gui" --durations=15
 
 # The add-on in the other Blenders users run, CI's second step: the bpy 4.2 LTS and 4.5 LTS
-# modules, each in .venv-bpy/VERSION (made on first use: about 1 GB and a minute each).
+# modules (Python 3.11), each in .venv-bpy/VERSION, and 5.1 and 5.2 LTS (Python 3.13, in the
+# Debian trixie chroot of tests/blender_gui.py; root): each made on first use and kept.
 test-blender: $(STAMP)
 	$(PY) -m pytest -m blender_matrix --durations=15
 
-# The real Blender 4.3.2 program with its GUI under Xvfb (a Debian trixie chroot, built on first
-# use and cached; root): every button pressed through Blender's event system, screenshots of
-# each state in out/gui-screenshots/ (CI's third step).
+# The real Blender programs with their GUI under Xvfb, Debian trixie's 4.3.2 and sid's newest
+# (chroots built on first use and cached; root): every button pressed through Blender's event
+# system, screenshots of each state in out/gui-screenshots/SUITE/; the extension repository
+# installed from (CI's third step).
 test-gui: $(STAMP)
 	$(PY) -m pytest -m gui --durations=15
 
@@ -58,7 +59,8 @@ bench-suite: $(STAMP)
 	$(PY) -m nerf_backend bench --suite $(SUITE_DIR) --presets preview,fast,auto --budget-seconds 120 \
 		--out $(BENCH_SUITE_DIR)
 
-# The installable Blender extension (dist/nerf_from_blender-VERSION.zip).
+# The installable Blender extension (dist/nerf_from_blender-VERSION.zip) and the repository
+# listing Blender installs and updates it from (dist/index.json).
 extension:
 	$(PYTHON) tools/build_extension.py --out dist
 

@@ -13,7 +13,7 @@ import bpy
 
 from .images import COMPARISON_IMAGE, PREVIEW_IMAGE
 from .job_timer import status
-from .paths import animation_dir, backend_python, dataset_dir, run_dir
+from .paths import animation_dir, backend_python, dataset_dir, run_dir, torch_build
 from .ui_text import draw_text as _text
 from .ui_text import first_fitting
 
@@ -116,6 +116,7 @@ class NERF_PT_training(_NerfPanel, bpy.types.Panel):
         if setup is not None:
             _draw_status(layout, context, setup, "")
         if not backend_python(context):
+            _text(layout, context, f"Set Up Backend installs {torch_build(context).describe()}")
             layout.operator("nerf.setup_backend", icon="CONSOLE")
 
 

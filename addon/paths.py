@@ -3,12 +3,14 @@ Python (chosen in the preferences, or the one Set Up Backend made)."""
 
 from __future__ import annotations
 
+from functools import lru_cache
 from pathlib import Path
 
 import bpy
 
 from . import sources
 from .jobs import python_in_venv
+from .torch_builds import PlatformFacts, TorchBuild, choose_build, detect_facts
 
 
 def settings(context):
@@ -39,9 +41,27 @@ def managed_venv() -> Path:
         return Path(bpy.utils.user_resource("SCRIPTS", path="nerf_from_blender_backend", create=True))
 
 
-def backend_python(context) -> str:
+def _preferences(context):
     addon = context.preferences.addons.get(__package__)
-    chosen = addon.preferences.python_path if addon is not None else ""
+    return addon.preferences if addon is not None else None
+
+
+@lru_cache(maxsize=1)
+def platform_facts() -> PlatformFacts:
+    """This machine's platform and GPU, found once per Blender session (nvidia-smi and rocminfo
+    take a moment; the panel draws many times a second)."""
+    return detect_facts()
+
+
+def torch_build(context) -> TorchBuild:
+    """The PyTorch build Set Up Backend installs: detected, or forced in the preferences."""
+    prefs = _preferences(context)
+    return choose_build(platform_facts(), prefs.torch_build if prefs is not None else "auto")
+
+
+def backend_python(context) -> str:
+    prefs = _preferences(context)
+    chosen = prefs.python_path if prefs is not None else ""
     if chosen:
         return bpy.path.abspath(chosen)
     managed = python_in_venv(managed_venv())

@@ -7,7 +7,8 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 from . import sources
-from .paths import backend_python
+from .paths import backend_python, torch_build
+from .torch_builds import CUDA_BUILDS, ROCM_BUILD
 
 PRESETS = sources.backend_presets()  # presets.json, the backend's own list
 DEVICES = (("auto", "Auto", "CUDA, then Apple's MPS, then the CPU"), ("cpu", "CPU", "The CPU"),
@@ -66,17 +67,31 @@ class NerfSettings(bpy.types.PropertyGroup):
     compare_metrics: StringProperty(name="Metrics", default="", description="The metrics of the last comparison with Cycles")
 
 
+TORCH_BUILDS = (("auto", "Detect", "The build for this machine's GPU (NVIDIA: a CUDA build its driver runs; AMD on "
+                                  "Linux: ROCm; Apple silicon: MPS; otherwise the CPU build)"),
+                ("cpu", "CPU Only", "PyTorch's CPU build, the smallest download")) + tuple(
+    (key, f"CUDA {needs[0]}.{needs[1]}", f"PyTorch's CUDA {needs[0]}.{needs[1]} build (the NVIDIA driver must support "
+                                          f"CUDA {needs[0]}.{needs[1]} or newer)") for key, needs in CUDA_BUILDS) + (
+    (ROCM_BUILD, f"ROCm {ROCM_BUILD[4:]}", "PyTorch's ROCm build for AMD GPUs (Linux)"),)
+
+
 class NerfPreferences(bpy.types.AddonPreferences):
     bl_idname = __package__
 
     python_path: StringProperty(
         name="Backend Python", subtype="FILE_PATH", default="",
         description="The Python that runs training (needs torch). Empty: the one Set Up Backend makes")
+    torch_build: EnumProperty(name="PyTorch Build", items=TORCH_BUILDS, default="auto",
+                              description="Which PyTorch build Set Up Backend installs")
 
     def draw(self, context):
         layout = self.layout
         layout.prop(self, "python_path")
         layout.label(text=f"In use: {backend_python(context) or 'none yet'}")
+        layout.prop(self, "torch_build")
+        build = torch_build(context)
+        layout.label(text=f"Set Up Backend installs: {build.describe()}")
+        layout.label(text=build.reason)
         layout.operator("nerf.setup_backend")
 
 

@@ -11,7 +11,7 @@ from . import sources
 from .backend_setup import BackendSetup, check_backend
 from .job_timer import backend_setup, ensure_timer, training_job, watch_backend_setup
 from .jobs import default_base_python
-from .paths import backend_python, dataset_dir, managed_venv, settings
+from .paths import backend_python, dataset_dir, managed_venv, settings, torch_build
 
 
 def training_cpu_threads() -> int:
@@ -64,7 +64,8 @@ class NERF_OT_cancel_training(bpy.types.Operator):
 
 
 class NERF_OT_setup_backend(bpy.types.Operator):
-    """Create a Python environment with the backend's packages (torch...) for training"""
+    """Create a Python environment with the backend's packages for training, with the PyTorch
+    build for this machine's GPU (the preferences can force another)"""
 
     bl_idname = "nerf.setup_backend"
     bl_label = "Set Up Backend"
@@ -74,7 +75,8 @@ class NERF_OT_setup_backend(bpy.types.Operator):
         if previous is not None and previous.poll().state == "running":
             self.report({"ERROR"}, "the backend is already being set up")
             return {"CANCELLED"}
-        setup = BackendSetup(managed_venv(), default_base_python(), sources.backend_requirements())
+        setup = BackendSetup(managed_venv(), default_base_python(), sources.backend_requirements(),
+                             torch_build(context), sources.source_root())
         watch_backend_setup(setup)
         try:
             setup.start()

@@ -10,7 +10,7 @@ from pathlib import Path
 import torch
 
 from .bench import DEFAULT_PRESETS, Variant, ablation_variants, profile_marched_step, run_bench, run_suite, step_cost
-from .configs.presets import PRESETS, preset_config
+from .configs.presets import DEFAULT_PRESET, PRESETS, preset_config
 from .core.devices import resolve_device
 from .core.errors import NerfError
 from .data.run_folder import RunFolder
@@ -52,22 +52,39 @@ def _curve_points(text: str) -> int | tuple[float, ...]:
     return tuple(_positive_float(part) for part in text.split(",") if part.strip())
 
 
+class _DefaultsShown(argparse.HelpFormatter):
+    """Every option's help ends with its default, unless it says it already or has none."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if "default" in text or not action.option_strings or action.default in (None, False, [], argparse.SUPPRESS):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+DEVICE_HELP = "where to compute: auto takes CUDA, then Apple's MPS, then the CPU"
+SEED_HELP = "seed of the model's initialisation and of the rays sampled"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m nerf_backend", description="Train, render, score and benchmark NeRFs of Blender scenes.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
     sub = parser.add_subparsers(dest="command", required=True)
 
     train = sub.add_parser("train", help="train a NeRF on a dataset in the nerf_synthetic layout")
-    train.add_argument("dataset", type=Path)
+    train.add_argument("dataset", type=Path, help="the dataset folder (transforms_train.json and its images)")
     train.add_argument("--preset", choices=sorted(PRESETS), default=None,
-                       help="model/sampling/optimiser preset (default: preview; on --resume: the run's)")
+                       help=f"model/sampling/optimiser preset (default: {DEFAULT_PRESET}; on --resume: the run's)")
     train.add_argument("--out", type=Path, required=True, help="the run folder")
-    train.add_argument("--iters", type=_positive_int, default=None, help="total iterations for the run")
-    train.add_argument("--max-seconds", type=_positive_float, default=None, help="total training seconds for the run")
-    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--iters", type=_positive_int, default=None,
+                       help="total iterations for the run (default: the preset's, or with --max-seconds alone, "
+                            "as many as the time allows)")
+    train.add_argument("--max-seconds", type=_positive_float, default=None,
+                       help="total training seconds for the run; the schedule is laid over them (default: no limit)")
+    train.add_argument("--seed", type=int, default=0, help=SEED_HELP)
     train.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
                        help="change one preset setting, e.g. grid.resolution=96 (repeatable)")
-    train.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
+    train.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"], help=DEVICE_HELP)
     train.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     train.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
     train.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -96,16 +113,16 @@ def build_parser() -> argparse.ArgumentParser:
                             "(seconds or iterations, comma-separated: 60,120,300,600); the last is always the whole "
                             "budget")
     bench.add_argument("--curve-views", type=_positive_int, default=8, help="test views scored at each point")
-    bench.add_argument("--seed", type=int, default=0)
-    bench.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
-    bench.add_argument("--out", type=Path, required=True)
-    bench.add_argument("--overwrite", action="store_true")
+    bench.add_argument("--seed", type=int, default=0, help=SEED_HELP)
+    bench.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"], help=DEVICE_HELP)
+    bench.add_argument("--out", type=Path, required=True, help="the bench folder (bench.json, bench.md, bench.png, runs/)")
+    bench.add_argument("--overwrite", action="store_true", help="bench again into an existing folder")
 
     step = sub.add_parser("bench-step", help="a NeRF preset's seconds per iteration against a plain PyTorch "
                                              "implementation of the same maths; a marched preset's training step "
                                              "and rendered view split by stage, against this machine's limits")
-    step.add_argument("dataset", type=Path)
-    step.add_argument("--preset", default="paper")
+    step.add_argument("dataset", type=Path, help="the dataset folder")
+    step.add_argument("--preset", default="paper", help="the preset to time")
     step.add_argument("--steps", type=_positive_int, default=None,
                       help="timed iterations (default: 3 for NeRF presets, 50 for marched ones)")
     step.add_argument("--rays", type=_positive_int, default=None, help="rays per batch (default: the preset's)")
@@ -113,15 +130,15 @@ def build_parser() -> argparse.ArgumentParser:
                       help="marched presets: training before the timed steps, the whole schedule laid over it")
     step.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                       help="marched presets: change a setting of the preset")
-    step.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
-    step.add_argument("--seed", type=int, default=0)
-    step.add_argument("--out", type=Path, required=True)
-    step.add_argument("--overwrite", action="store_true")
+    step.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"], help=DEVICE_HELP)
+    step.add_argument("--seed", type=int, default=0, help=SEED_HELP)
+    step.add_argument("--out", type=Path, required=True, help="folder for the timings (JSON and Markdown)")
+    step.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
 
     render = sub.add_parser("render", help="render a split's views with a trained run")
-    render.add_argument("run", type=Path)
-    render.add_argument("--split", default="test")
-    render.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
+    render.add_argument("run", type=Path, help="the run folder")
+    render.add_argument("--split", default="test", help="the dataset split whose views are rendered")
+    render.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"], help=DEVICE_HELP)
     render.add_argument("--chunk", type=_positive_int, default=None,
                         help=f"rays per forward pass; bounds memory (default: the model's, {Model.render_chunk} "
                              f"for NeRF MLPs, {MarchedModel.render_chunk} for marched models)")
@@ -137,7 +154,7 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--out", type=Path, default=None, help="with --cameras or --camera-path: the output folder")
     render.add_argument("--scale", type=_positive_float, default=1.0,
                         help="render at this multiple of the dataset's resolution (into renders/SPLIT_xSCALE)")
-    render.add_argument("--no-progress", action="store_true")
+    render.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     evaluate = sub.add_parser("eval", help="score renders against the dataset's ground truth: a run's (rendered "
                                            "first if needed) or any tool's (--dataset D --renders DIR)")
@@ -147,10 +164,10 @@ def build_parser() -> argparse.ArgumentParser:
                           help="a folder of renders from any tool: STEM.png for each view of the split")
     evaluate.add_argument("--out", type=Path, default=None,
                           help="with --renders: where metrics.json goes (default: the renders folder)")
-    evaluate.add_argument("--split", default="test")
-    evaluate.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
+    evaluate.add_argument("--split", default="test", help="the dataset split scored")
+    evaluate.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"], help=DEVICE_HELP)
     evaluate.add_argument("--chunk", type=_positive_int, default=None, help="rays per forward pass when rendering")
-    evaluate.add_argument("--no-progress", action="store_true")
+    evaluate.add_argument("--no-progress", action="store_true", help="no progress bar")
     evaluate.add_argument("--geometry", action="store_true",
                           help="also measure the run's surface (its mesh) against the scene's true one (the "
                                "dataset's scene_geometry.ply): Chamfer, F-score at 1 %% of the bounding-sphere "
@@ -165,7 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--reference", type=Path, required=True, help="e.g. the Cycles render")
     compare.add_argument("--render", type=Path, required=True, help="e.g. the NeRF render of the same camera")
     compare.add_argument("--out", type=Path, required=True, help="folder for compare.json and difference.png")
-    compare.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
+    compare.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"], help=DEVICE_HELP)
     for command in (evaluate, compare):
         command.add_argument("--lpips-weights", type=Path, default=None,
                              help="torchvision's AlexNet weights (alexnet-owt-7be5be79.pth) for LPIPS "
@@ -175,20 +192,22 @@ def build_parser() -> argparse.ArgumentParser:
 
     mesh = sub.add_parser("mesh", help="extract the trained density's surface as a mesh (marching cubes), "
                                        "coloured, in Blender's world coordinates")
-    mesh.add_argument("run", type=Path)
+    mesh.add_argument("run", type=Path, help="the run folder")
     mesh.add_argument("--out", type=Path, required=True, help="MESH.ply or MESH.obj (a record MESH.ply.json beside it)")
     mesh.add_argument("--resolution", type=_positive_int, default=256,
                       help="grid vertices along the scene box's longest side (default: 256)")
     mesh.add_argument("--threshold", type=_positive_float, default=None,
                       help="surface density (default: ln 2 / the render step, where one step is half opaque)")
-    mesh.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"])
+    mesh.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"], help=DEVICE_HELP)
     mesh.add_argument("--overwrite", action="store_true", help="replace an existing mesh file")
 
     report = sub.add_parser("report", help="write an HTML page comparing renders with Cycles ground truth")
     report.add_argument("results", type=Path, nargs="+",
                         help="run folders, or renders folders scored by eval --dataset D --renders DIR")
     report.add_argument("--out", type=Path, default=None, help="default: FIRST/report")
-    report.add_argument("--split", default="test")
+    report.add_argument("--split", default="test", help="the dataset split shown")
+    for command in sub.choices.values():
+        command.formatter_class = _DefaultsShown
     return parser
 
 

@@ -1,10 +1,16 @@
-"""The real Blender program with its GUI, for tests: Debian trixie's Blender 4.3.2 in a chroot
-of its own (this machine's Debian 12 has only Blender 3.4), drawn by Xvfb with Mesa's
+"""Real Blender programs and Python 3.13 for tests, from Debian's archive, each in a chroot of its
+own (this machine's Debian 12 has only Blender 3.4 and Python 3.11), drawn by Xvfb with Mesa's
 software OpenGL. Facts checked in ../shared/BLENDER_GUI.md.
 
-``python tests/blender_gui.py`` builds the chroot once (about 2 minutes, 1.4 GB; root, with
-Debian's mirror reachable) and caches it in ``$NERF_BLENDER_GUI_CHROOT`` (default
-``~/.cache/nerf-from-blender/blender-gui-trixie``); the GUI test calls it too.
+- ``trixie`` (Debian 13): Blender 4.3.2, and Python 3.13, which the ``bpy`` 5.1 and 5.2 wheels
+  need (``tests/blender_versions.py`` makes their venvs inside it);
+- ``sid`` (Debian unstable): the newest Blender Debian packages (5.2.2 on 2026-11-25; its
+  Python is 3.14, so no ``bpy`` wheel runs there).
+
+``python tests/blender_gui.py [SUITE ...]`` builds the chroots once (about 2-3 minutes and
+1.5 GB each; root, with Debian's mirror reachable) and caches them in
+``~/.cache/nerf-from-blender/blender-gui-SUITE`` (``$NERF_BLENDER_GUI_CHROOT`` for trixie's);
+the tests call it too.
 
 Inside, a test sees its work folder at the same path as outside (a bind mount), and the
 host's root at ``/host``: the add-on's backend runs the project's ``.venv`` through
@@ -21,11 +27,25 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
-CHROOT = Path(os.environ.get("NERF_BLENDER_GUI_CHROOT",
-                             Path.home() / ".cache" / "nerf-from-blender" / "blender-gui-trixie"))
+SUITES = ("trixie", "sid")
+CACHE = Path.home() / ".cache" / "nerf-from-blender"
 # python3-numpy: Debian's blender only recommends it, and the add-on (the voxeliser) needs it.
-PACKAGES = ("blender", "python3-numpy", "xvfb", "xauth", "x11-apps", "imagemagick")
+# python3-venv, python3-pip and ca-certificates: the bpy venvs made inside (trixie's Python 3.13).
+PACKAGES = ("blender", "python3-numpy", "xvfb", "xauth", "x11-apps", "imagemagick", "python3-venv", "python3-pip",
+            "ca-certificates")
 READY = ".nerf-ready"  # written last: a chroot without it is incomplete
+# Where the host's pip finds its certificate authorities: a chroot's pip needs the same ones.
+HOST_CERTIFICATES = Path("/usr/local/share/ca-certificates")
+
+
+def chroot_path(suite: str = "trixie") -> Path:
+    if suite == "trixie" and os.environ.get("NERF_BLENDER_GUI_CHROOT"):
+        return Path(os.environ["NERF_BLENDER_GUI_CHROOT"])
+    return CACHE / f"blender-gui-{suite}"
+
+
+# The trixie chroot, where it was before sid's was added (kept for callers that name one chroot).
+CHROOT = chroot_path("trixie")
 
 
 def _run(*command: str | os.PathLike, **kwargs) -> subprocess.CompletedProcess:
@@ -89,52 +109,72 @@ def mounted(root: Path, same_paths: tuple[Path, ...] = (), host: bool = False) -
                 subprocess.run(["umount", "-l", str(point)], capture_output=True)
 
 
-def ensure_chroot(log=print) -> Path:
-    """The cached chroot, built first if missing; raises with the reason when it cannot be."""
-    if (CHROOT / READY).is_file():
-        missing = [p for p in PACKAGES if not (CHROOT / "var" / "lib" / "dpkg" / "info" / f"{p}.list").is_file()]
+def _trust_host_certificates(root: Path) -> None:
+    """The host's extra certificate authorities, trusted inside too (pip fails without them)."""
+    if HOST_CERTIFICATES.is_dir() and any(HOST_CERTIFICATES.glob("*.crt")):
+        target = root / HOST_CERTIFICATES.relative_to("/")
+        target.mkdir(parents=True, exist_ok=True)
+        for certificate in HOST_CERTIFICATES.glob("*.crt"):
+            shutil.copy(certificate, target / certificate.name)
+        _run("chroot", root, "update-ca-certificates")
+
+
+def _apt_install(root: Path, packages: tuple[str, ...] | list[str]) -> None:
+    _run("chroot", root, "apt-get", "update", "-qq")
+    _run("chroot", root, "apt-get", "install", "-y", "-qq", "--no-install-recommends", *packages,
+         env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})
+    _run("chroot", root, "apt-get", "clean")
+
+
+def ensure_chroot(suite: str = "trixie", log=print) -> Path:
+    """The cached chroot of ``suite``, built first if missing; raises with the reason when it
+    cannot be."""
+    if suite not in SUITES:
+        raise ValueError(f"unknown suite {suite!r}: choose one of {', '.join(SUITES)}")
+    root = chroot_path(suite)
+    if (root / READY).is_file():
+        missing = [p for p in PACKAGES if not (root / "var" / "lib" / "dpkg" / "info" / f"{p}.list").is_file()
+                   and not any((root / "var" / "lib" / "dpkg" / "info").glob(f"{p}:*.list"))]
         if missing:  # a chroot cached before a package was added to PACKAGES
             log(f"apt-get install {' '.join(missing)}")
-            with mounted(CHROOT):
-                _run("chroot", CHROOT, "apt-get", "update", "-qq")
-                _run("chroot", CHROOT, "apt-get", "install", "-y", "-qq", "--no-install-recommends", *missing,
-                     env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})
-                _run("chroot", CHROOT, "apt-get", "clean")
-        return CHROOT
+            with mounted(root):
+                _apt_install(root, missing)
+                _trust_host_certificates(root)
+        return root
     if os.geteuid() != 0:
-        raise RuntimeError(f"building {CHROOT} needs root (debootstrap, mount, chroot)")
+        raise RuntimeError(f"building {root} needs root (debootstrap, mount, chroot)")
     if shutil.which("debootstrap") is None:
         log("installing debootstrap")
         _run("apt-get", "install", "-y", "-qq", "debootstrap",
              env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})
-    partial = CHROOT.with_name(CHROOT.name + ".partial")
+    partial = root.with_name(root.name + ".partial")
     if partial.exists():
         _remove_unmounted(partial)
     partial.parent.mkdir(parents=True, exist_ok=True)
-    log(f"debootstrap trixie into {partial}")
-    _run("debootstrap", "--variant=minbase", "trixie", partial, _mirror())
+    log(f"debootstrap {suite} into {partial}")
+    _run("debootstrap", "--variant=minbase", suite, partial, _mirror())
     shutil.copy("/etc/resolv.conf", partial / "etc" / "resolv.conf")
     (partial / "etc" / "mtab").unlink(missing_ok=True)
     (partial / "etc" / "mtab").symlink_to("../proc/self/mounts")
     with mounted(partial):
         log(f"apt-get install {' '.join(PACKAGES)}")
-        _run("chroot", partial, "apt-get", "update", "-qq")
-        _run("chroot", partial, "apt-get", "install", "-y", "-qq", "--no-install-recommends", *PACKAGES,
-             env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})
-        _run("chroot", partial, "apt-get", "clean")
+        _apt_install(partial, PACKAGES)
+        _trust_host_certificates(partial)
     (partial / READY).write_text(_run("chroot", partial, "blender", "--version").stdout.splitlines()[0] + "\n")
-    if CHROOT.exists():
-        _remove_unmounted(CHROOT)
-    partial.rename(CHROOT)
-    return CHROOT
+    if root.exists():
+        _remove_unmounted(root)
+    partial.rename(root)
+    return root
 
 
-def blender_version() -> str:
-    return (CHROOT / READY).read_text().strip()
+def blender_version(suite: str = "trixie") -> str:
+    """'Blender 4.3.2': the first line of the chroot's ``blender --version``."""
+    return (chroot_path(suite) / READY).read_text().strip()
 
 
 if __name__ == "__main__":
     try:
-        print(f"ready: {ensure_chroot()} ({blender_version()})")
+        for name in sys.argv[1:] or SUITES:
+            print(f"ready: {ensure_chroot(name)} ({blender_version(name)})")
     except RuntimeError as error:
         sys.exit(f"blender_gui: {error}")

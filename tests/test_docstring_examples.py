@@ -16,6 +16,8 @@ MODULES = sorted(info.name for info in pkgutil.walk_packages(nerf_backend.__path
 # datasets_gen's pure modules with examples (its others import bpy).
 MODULES += ["datasets_gen.camera_path", "datasets_gen.formats", "datasets_gen.png_image", "datasets_gen.zbuffer",
             "datasets_gen.colmap_model", "datasets_gen.surface_mesh"]
+# The add-on's plain modules with examples (no bpy).
+MODULES += ["addon.torch_builds", "addon.backend_setup"]
 
 
 @pytest.mark.parametrize("name", MODULES)

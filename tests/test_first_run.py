@@ -3,8 +3,10 @@ run resumed with nothing to do, the files a run leaves behind and their modes.""
 
 from __future__ import annotations
 
+import argparse
 import fcntl
 import io
+import json
 import os
 import pty
 import select
@@ -121,3 +123,28 @@ def test_the_usage_lines_name_the_projects_python(tmp_path):
     assert "Traceback" not in result.stderr and ".venv/bin/python" in result.stderr, result.stderr
     help_text = run_python("-m", "nerf_backend", "--help").stdout
     assert "``" not in help_text
+
+
+def test_train_without_a_preset_trains_auto(tiny_demo_dataset, tmp_path):
+    """A new user's `train DATASET --out RUN` gets the preset the README and the add-on use."""
+    run = tmp_path / "run"
+    run_python("-m", "nerf_backend", "train", str(tiny_demo_dataset), "--out", str(run), "--iters", "3",
+               "--no-progress")
+    assert json.loads((run / "config.json").read_text())["preset"] == "auto"
+
+
+def test_every_commands_help_shows_its_defaults():
+    from nerf_backend.cli import build_parser
+
+    parser = build_parser()
+    commands = next(action for action in parser._actions if isinstance(action, argparse._SubParsersAction)).choices
+    missing = []
+    for name, command in commands.items():
+        formatter = command._get_formatter()
+        for action in command._actions:
+            if not action.option_strings or action.default in (None, False, [], argparse.SUPPRESS):
+                continue
+            if "default" not in formatter._get_help_string(action):
+                missing.append(f"{name} {action.option_strings[0]}")
+    assert not missing, missing
+    assert "(default: auto)" in commands["train"].format_help().replace("\n", " ").replace("  ", " ")

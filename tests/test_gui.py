@@ -1,10 +1,10 @@
-"""The add-on in the real Blender program with its GUI (Blender 4.3.2 under Xvfb, from the chroot
-tests/blender_gui.py builds): installed from the zip, every panel state drawn, every button
-pressed through Blender's event system, screenshots kept. The session itself is
-tests/blender_scripts/gui_session.py.
+"""The add-on in the real Blender program with its GUI, under Xvfb, from the chroots
+tests/blender_gui.py builds: Debian trixie's Blender 4.3.2 and sid's, the newest Debian
+packages (5.2.2). Installed from the zip, every panel state drawn, every button pressed through
+Blender's event system, screenshots kept. The session itself is tests/blender_scripts/gui_session.py.
 
 Run by ``make test-gui`` (CI runs it after ``make test-blender``); the screenshots are kept in
-``out/gui-screenshots/`` (or ``$NERF_GUI_SCREENSHOTS``) as the test's artifacts."""
+``out/gui-screenshots/SUITE/`` (or ``$NERF_GUI_SCREENSHOTS/SUITE``) as the test's artifacts."""
 
 from __future__ import annotations
 
@@ -31,9 +31,9 @@ STATES = ("01_idle", "02_failed", "03_dataset_dialog", "04_dataset_rendering", "
 ARTIFACTS = Path(os.environ.get("NERF_GUI_SCREENSHOTS", REPO_ROOT / "out" / "gui-screenshots"))
 
 
-def _chroot() -> Path:
+def _chroot(suite: str) -> Path:
     try:
-        return blender_gui.ensure_chroot()
+        return blender_gui.ensure_chroot(suite)
     except RuntimeError as error:
         if os.environ.get("NERF_REQUIRE_GUI"):
             pytest.fail(f"the Blender GUI chroot cannot be built: {error}")
@@ -56,10 +56,11 @@ def _kill_processes_using(folder: Path) -> None:
             continue
 
 
-@pytest.fixture(scope="module")
-def gui(tmp_path_factory):
-    chroot = _chroot()
-    work = tmp_path_factory.mktemp("gui")
+@pytest.fixture(scope="module", params=blender_gui.SUITES)
+def gui(request, tmp_path_factory):
+    suite = request.param
+    chroot = _chroot(suite)
+    work = tmp_path_factory.mktemp(f"gui-{suite}")
     (work / "home").mkdir()
     run_python(str(REPO_ROOT / "tools" / "build_extension.py"), "--out", str(work))
     extension = next(work.glob("nerf_from_blender-*.zip"))
@@ -97,21 +98,23 @@ def gui(tmp_path_factory):
             _kill_processes_using(work)  # a job the session could not stop (it was killed, or timed out)
     (work / "console.txt").write_text(console)
     report = json.loads((work / "gui_report.json").read_text()) if (work / "gui_report.json").is_file() else {}
-    ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    for old in ARTIFACTS.glob("*.png"):  # a former run's, which this one may not replace
+    artifacts = ARTIFACTS / suite
+    artifacts.mkdir(parents=True, exist_ok=True)
+    for old in artifacts.glob("*.png"):  # a former run's, which this one may not replace
         old.unlink()
     for png in [*(work / "screenshots").glob("[0-9]*.png"), *(work / "screenshots").glob("zz_*.png")]:
-        shutil.copy(png, ARTIFACTS / png.name)
-    shutil.copy(work / "console.txt", ARTIFACTS / "console.txt")
+        shutil.copy(png, artifacts / png.name)
+    shutil.copy(work / "console.txt", artifacts / "console.txt")
     if (work / "gui_report.json").is_file():
-        shutil.copy(work / "gui_report.json", ARTIFACTS / "gui_report.json")
-    return {"report": report, "console": console, "work": work}
+        shutil.copy(work / "gui_report.json", artifacts / "gui_report.json")
+    return {"report": report, "console": console, "work": work, "version": blender_gui.blender_version(suite)}
 
 
 def test_the_whole_flow_runs_through_real_clicks(gui):
     report = gui["report"]
     assert report.get("finished"), report.get("error") or gui["console"][-4000:]
-    assert report["blender"].startswith("4.3"), report["blender"]
+    # The chroot's own Blender ("Blender 5.2.2"), major.minor as bpy.app says it.
+    assert report["blender"].startswith(".".join(gui["version"].split()[1].split(".")[:2])), (report["blender"], gui["version"])
 
 
 def test_no_traceback_in_blenders_console(gui):
@@ -170,3 +173,40 @@ def test_no_label_is_cut_off_at_the_default_sidebar_width(gui):
     cut = {item: width for flags in labels["flag_buttons"].values() for item, width in flags["widths_px"].items()
            if width + margin > flags["button_px"]}
     assert not cut, f"toggle buttons too narrow for their text: {cut}"
+
+
+@pytest.mark.parametrize("suite", blender_gui.SUITES)
+def test_the_extension_repository_installs_in_blender_and_matches_its_own_listing(suite, tmp_path):
+    """`make extension`'s repository: the zip passes Blender's `extension validate`; index.json is
+    what Blender's `extension server-generate` writes for the same folder; and Blender, given
+    the repository's URL once, installs and enables the add-on from it."""
+    chroot = _chroot(suite)
+    repo, reference = tmp_path / "repo", tmp_path / "reference"
+    result = run_python(str(REPO_ROOT / "tools" / "build_extension.py"), "--out", str(repo))
+    assert "repository listing" in result.stdout
+    archive = next(repo.glob("nerf_from_blender-*.zip"))
+    reference.mkdir()
+    shutil.copy(archive, reference / archive.name)
+    (tmp_path / "home").mkdir()
+
+    def extension(*arguments: str) -> str:
+        process = _in_chroot(chroot, tmp_path, "blender", "--online-mode", "--command", "extension", *arguments,
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        output = process.communicate(timeout=300)[0]
+        assert process.returncode == 0, f"extension {' '.join(arguments)}:\n{output}"
+        return output
+
+    with blender_gui.mounted(chroot, (tmp_path,)):
+        extension("validate", str(archive))
+        extension("server-generate", "--repo-dir", str(reference))
+        ours, blenders = (json.loads((folder / "index.json").read_text()) for folder in (repo, reference))
+        assert ours == blenders
+        # This machine is offline: the default online repository would fail the sync.
+        extension("repo-remove", "blender_org")
+        extension("repo-add", "--name", "NeRF from Blender", "--url", (repo / "index.json").as_uri(), "nerf_repo")
+        installed = extension("install", "--sync", "--enable", "nerf_from_blender")
+        listing = extension("list")
+    assert 'Installed "nerf_from_blender"' in installed, installed
+    assert "nerf_from_blender [installed]" in listing, listing
+    home_config = tmp_path / "home" / ".config" / "blender"
+    assert list(home_config.glob("*/extensions/nerf_repo/nerf_from_blender/blender_manifest.toml"))

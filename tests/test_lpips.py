@@ -105,3 +105,83 @@ def test_eval_reports_lpips_null_with_reason_or_a_real_number(trained_run, backb
         rendered = read_rgb(trained_run / "renders" / "test" / f"{view['view']}.png")
         assert view["lpips"] == pytest.approx(lpips_distance(metric, rendered, split.rgb_on_white(index).numpy()), abs=1e-6)
     assert metrics["lpips"] == pytest.approx(np.mean([v["lpips"] for v in metrics["per_view"]]))
+
+
+@pytest.fixture
+def served(tmp_path):
+    """A local HTTP server over a folder: the download path is tested against it, offline."""
+    import functools
+    import http.server
+    import threading
+
+    folder = tmp_path / "served"
+    folder.mkdir()
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(folder))
+    handler.log_message = lambda *args: None
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield folder, f"http://127.0.0.1:{server.server_address[1]}"
+    server.shutdown()
+    server.server_close()
+
+
+def _named_by_its_hash(source, folder, stem="alexnet-test"):
+    """A copy of ``source`` named as torchvision names its weights: STEM-<first 8 of SHA-256>.pth."""
+    import hashlib
+
+    data = source.read_bytes()
+    name = f"{stem}-{hashlib.sha256(data).hexdigest()[:8]}.pth"
+    (folder / name).write_bytes(data)
+    return name
+
+
+def test_the_backbone_is_downloaded_once_and_checked_against_its_hash(served, backbone_file, tmp_path):
+    from nerf_backend.metrics.lpips_metric import fetch_backbone
+
+    folder, base = served
+    name = _named_by_its_hash(backbone_file, folder)
+    cache = tmp_path / "hub" / "checkpoints"
+    path = fetch_backbone(f"{base}/{name}", cache / name, progress=False)
+    assert path == cache / name and path.read_bytes() == backbone_file.read_bytes()
+    (folder / name).unlink()  # already there: not fetched again
+    assert fetch_backbone(f"{base}/{name}", cache / name, progress=False) == path
+
+
+def test_a_download_whose_hash_does_not_match_is_refused_and_nothing_kept(served, backbone_file, tmp_path):
+    from nerf_backend.metrics.lpips_metric import fetch_backbone
+
+    folder, base = served
+    (folder / "alexnet-test-00000000.pth").write_bytes(backbone_file.read_bytes())
+    cache = tmp_path / "hub" / "checkpoints"
+    with pytest.raises(LpipsUnavailable, match="refused, its SHA-256 does not start with 00000000"):
+        fetch_backbone(f"{base}/alexnet-test-00000000.pth", cache / "alexnet-test-00000000.pth", progress=False)
+    assert list(cache.iterdir()) == []  # no partial or unchecked file left behind
+
+
+def test_offline_the_download_fails_with_the_reason(tmp_path):
+    from nerf_backend.metrics.lpips_metric import fetch_backbone
+
+    with pytest.raises(LpipsUnavailable, match="could not download http://127.0.0.1:9/alexnet-owt-7be5be79.pth"):
+        fetch_backbone("http://127.0.0.1:9/alexnet-owt-7be5be79.pth",  # the discard port: nothing listens
+                       tmp_path / "alexnet-owt-7be5be79.pth", progress=False)
+    assert not (tmp_path / "alexnet-owt-7be5be79.pth").exists()
+
+
+def test_a_first_eval_downloads_the_backbone_and_scores_lpips(served, backbone_file, trained_run, tmp_path, monkeypatch):
+    """`eval RUN` with no weights anywhere: the backbone comes from the (local) published URL into
+    torch hub's cache, and every view gets a real LPIPS number."""
+    from nerf_backend import cli
+    from nerf_backend.metrics import lpips_metric
+
+    folder, base = served
+    name = _named_by_its_hash(backbone_file, folder)
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.setattr(lpips_metric, "BACKBONE_FILE", name)
+    monkeypatch.setattr(lpips_metric, "BACKBONE_URL", f"{base}/{name}")
+    monkeypatch.setattr(lpips_metric, "_fetch_failure", None)
+    assert cli.main(["eval", str(trained_run), "--no-progress"]) == 0
+    assert (tmp_path / "torch" / "hub" / "checkpoints" / name).read_bytes() == backbone_file.read_bytes()
+    metrics = json.loads((trained_run / "metrics.json").read_text())
+    assert metrics["lpips_unavailable"] is None and metrics["lpips"] > 0
+    assert all(view["lpips"] is not None for view in metrics["per_view"])

@@ -1,5 +1,6 @@
 """The README's two pictures of the add-on, cut from the GUI test's screenshots
-(``make test-gui`` leaves them in out/gui-screenshots/): the sidebar while training and when
+(``make test-gui`` leaves them in out/gui-screenshots/SUITE/; sid's, the newest Blender, by
+default): the sidebar while training and when
 done, and the comparison in the Image Editor.
 
     .venv/bin/python tools/gui_readme_images.py [SCREENSHOTS] [--out docs]
@@ -18,7 +19,7 @@ REPO = Path(__file__).resolve().parent.parent
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("screenshots", type=Path, nargs="?", default=REPO / "out" / "gui-screenshots")
+    parser.add_argument("screenshots", type=Path, nargs="?", default=REPO / "out" / "gui-screenshots" / "sid")
     parser.add_argument("--out", type=Path, default=REPO / "docs")
     args = parser.parse_args()
     report = json.loads((args.screenshots / "gui_report.json").read_text())

@@ -41,6 +41,8 @@ def load_presets(path: Path = PRESETS_FILE) -> dict[str, TrainConfig]:
 
 
 PRESETS: dict[str, TrainConfig] = load_presets()
+# What a new run trains without a preset named: the one the README, the add-on and the demo use.
+DEFAULT_PRESET = "auto"
 
 
 def preset_config(name: str) -> TrainConfig:

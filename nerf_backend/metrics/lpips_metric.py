@@ -9,16 +9,20 @@ convolution (the learned "lin" layers), average over the image and sum over laye
 
 Two weight files are needed, and neither is invented here:
 - the AlexNet backbone, torchvision's ``alexnet-owt-7be5be79.pth`` state dict (keys
-  ``features.N.weight``), from ``--lpips-weights PATH`` or torch hub's cache;
+  ``features.N.weight``), from ``--lpips-weights PATH`` or torch hub's cache, where it is
+  downloaded once from torchvision's published URL (:func:`fetch_backbone`: torch hub's own
+  downloader, which checks the SHA-256 prefix the file name carries);
 - the lin layers, ``lpips/weights/v0.1/alex.pth`` as shipped inside the ``lpips`` package
   (installed without dependencies: only that file is read), or ``--lpips-linear PATH``.
-When one is missing, :func:`load_lpips` raises :class:`LpipsUnavailable` with the reason,
-and the callers report LPIPS as unavailable rather than a number.
+When one is missing (offline, say), :func:`load_lpips` raises :class:`LpipsUnavailable` with
+the reason, and the callers report LPIPS as unavailable rather than a number.
 """
 
 from __future__ import annotations
 
 import importlib.util
+import re
+import socket
 from pathlib import Path
 
 import torch
@@ -26,6 +30,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 BACKBONE_FILE = "alexnet-owt-7be5be79.pth"  # torchvision's name for the ImageNet AlexNet
+BACKBONE_URL = "https://download.pytorch.org/models/" + BACKBONE_FILE  # where torchvision publishes it
+DOWNLOAD_TIMEOUT_S = 60.0  # per network operation: a dropped connection fails instead of hanging
 # The lpips package's ScalingLayer: ImageNet statistics expressed for inputs in [-1, 1].
 SHIFT = (-0.030, -0.088, -0.188)
 SCALE = (0.458, 0.448, 0.450)
@@ -105,16 +111,59 @@ def default_linear_path() -> Path | None:
     return Path(list(spec.submodule_search_locations)[0]) / "weights" / "v0.1" / "alex.pth"
 
 
+_fetch_failure: str | None = None  # why this process's download failed: not tried again per eval
+
+
+def fetch_backbone(url: str | None = None, destination: Path | None = None, progress: bool = True) -> Path:
+    """The backbone at ``destination`` (default: torch hub's cache), downloaded from ``url``
+    (default: torchvision's) if it is not there yet. The file must hash to the SHA-256 prefix its name carries
+    (``NAME-<hex>.pth``, torchvision's convention): a file that does not is refused and nothing
+    is kept. Raises :class:`LpipsUnavailable` with the reason (no network, refused hash)."""
+    url = url or BACKBONE_URL
+    destination = Path(destination) if destination is not None else default_backbone_path()
+    if destination.is_file():
+        return destination
+    prefix = re.search(r"-([0-9a-f]{6,})\.[^.]+$", destination.name)
+    if prefix is None:
+        raise ValueError(f"{destination.name}: no SHA-256 prefix in the file name to check the download against")
+    destination.parent.mkdir(parents=True, exist_ok=True)
+    previous = socket.getdefaulttimeout()
+    socket.setdefaulttimeout(DOWNLOAD_TIMEOUT_S)
+    try:  # torch hub's downloader: a temporary file beside the destination, renamed once checked
+        torch.hub.download_url_to_file(url, str(destination), hash_prefix=prefix.group(1), progress=progress)
+    except RuntimeError as exc:
+        raise LpipsUnavailable(f"{url}: refused, its SHA-256 does not start with {prefix.group(1)} as "
+                               f"{destination.name} says ({exc}); nothing was kept") from None
+    except OSError as exc:  # URLError, timeouts, a full disk
+        raise LpipsUnavailable(f"could not download {url} into {destination} ({getattr(exc, 'reason', exc)}); "
+                               f"with no network, give --lpips-weights PATH to {BACKBONE_FILE}") from None
+    finally:
+        socket.setdefaulttimeout(previous)
+    return destination
+
+
+def _backbone_in_cache() -> Path:
+    """torch hub's cached backbone, downloaded on first use (one try per process)."""
+    global _fetch_failure
+    if _fetch_failure is None:
+        try:
+            return fetch_backbone()
+        except LpipsUnavailable as exc:
+            _fetch_failure = str(exc)
+    raise LpipsUnavailable(_fetch_failure)
+
+
 def load_lpips(backbone: Path | None = None, linear: Path | None = None, device: torch.device | str = "cpu") -> Lpips:
-    """The metric with its weights, or :class:`LpipsUnavailable` saying which file is missing."""
-    backbone = Path(backbone) if backbone is not None else default_backbone_path()
+    """The metric with its weights, or :class:`LpipsUnavailable` saying which file is missing.
+    Without ``backbone``, torch hub's cached one, downloaded there on first use."""
     linear = Path(linear) if linear is not None else default_linear_path()
-    if not backbone.is_file():
-        raise LpipsUnavailable(f"no AlexNet weights at {backbone} (give --lpips-weights PATH to {BACKBONE_FILE})")
-    if linear is None or not linear.is_file():
+    if linear is None or not linear.is_file():  # checked first: no download for a metric that cannot run
         raise LpipsUnavailable(
             f"the LPIPS v0.1 linear-layer weights are not on this machine ({linear or 'no lpips package'}); "
             f"install them with 'pip install --no-deps lpips' or pass --lpips-linear PATH")
+    backbone = Path(backbone) if backbone is not None else _backbone_in_cache()
+    if not backbone.is_file():
+        raise LpipsUnavailable(f"no AlexNet weights at {backbone} (give --lpips-weights PATH to {BACKBONE_FILE})")
     metric = Lpips()
     try:
         backbone_state = torch.load(backbone, map_location="cpu", weights_only=True)

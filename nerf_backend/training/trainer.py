@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from ..configs.presets import preset_config
+from ..configs.presets import DEFAULT_PRESET, preset_config
 from ..configs.train_config import SCHEDULES, TrainConfig, with_overrides
 from ..core.cameras import camera_rays, pixel_centres
 from ..core.devices import autocast_dtype, resolve_device
@@ -39,7 +39,7 @@ from .collapse_guard import CollapseGuard, Verdict, blank_psnr, recovery_config
 class TrainOptions:
     dataset: Path
     run: Path
-    preset: str | None = None  # None on resume: the run's own
+    preset: str | None = None  # None: DEFAULT_PRESET for a new run, the run's own on resume
     iterations: int | None = None  # total for the run; None: the preset's
     max_seconds: float | None = None  # total training seconds for the run
     # The time budget the schedule is laid over (TrainConfig.schedule); None: max_seconds.
@@ -245,7 +245,7 @@ def _plan_run(run: RunFolder, dataset: Path, train_split: DatasetSplit, options:
         stop_at_iterations = options.iterations is not None or stored.get("stop_at_iterations", True)
         schedule_seconds = options.schedule_seconds or options.max_seconds or stored.get("schedule_seconds")
     else:
-        config = with_overrides(preset_config(options.preset or "preview"), list(options.overrides))
+        config = with_overrides(preset_config(options.preset or DEFAULT_PRESET), list(options.overrides))
         seed = options.seed
         max_seconds = options.max_seconds
         # A time budget alone trains until the time is spent (the schedule laid over it);

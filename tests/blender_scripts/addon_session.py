@@ -25,7 +25,8 @@ from pathlib import Path
 import bpy
 
 ZIP, WORK, REPORT = Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3])
-SCENE = Path(__file__).resolve().parents[3] / "shared" / "scenes" / "A.blend"
+# NERF_TEST_SCENE: where the test found it (inside a chroot ../shared may be elsewhere).
+SCENE = Path(os.environ.get("NERF_TEST_SCENE", Path(__file__).resolve().parents[3] / "shared" / "scenes" / "A.blend"))
 PACKAGE_ID = "nerf_from_blender"
 report: dict = {"blender": bpy.app.version_string}
 
@@ -60,6 +61,14 @@ def _tooltips(rna) -> dict[str, str]:
 addon = bpy.context.preferences.addons[module]
 report["tooltips"] = {**_tooltips(bpy.types.Scene.bl_rna.properties["nerf"].fixed_type.bl_rna),
                       **{f"preferences.{k}": v for k, v in _tooltips(addon.preferences.bl_rna).items()}}
+# The PyTorch build Set Up Backend would install here, detected and forced in the preferences.
+builds = {}
+for choice in ("auto", "cu128"):
+    addon.preferences.torch_build = choice
+    build = sys.modules[f"{module}.paths"].torch_build(bpy.context)
+    builds[choice] = {"key": build.key, "index_url": build.index_url, "text": build.describe()}
+addon.preferences.torch_build = "auto"
+report["torch_builds"] = builds
 save()
 
 # 2. a dataset from a real scene, through the panel's operator
