@@ -33,6 +33,10 @@ CACHE = Path.home() / ".cache" / "nerf-from-blender"
 # python3-venv, python3-pip and ca-certificates: the bpy venvs made inside (trixie's Python 3.13).
 PACKAGES = ("blender", "python3-numpy", "xvfb", "xauth", "x11-apps", "imagemagick", "python3-venv", "python3-pip",
             "ca-certificates")
+# sid's blender 5.2.2 package does not depend on the modules its Extensions add-on imports
+# (cattrs, requests): without them that add-on fails to register ("No module named 'cattrs'")
+# and `blender --command extension` cannot run. A user of that package needs them too.
+SUITE_PACKAGES = {"trixie": (), "sid": ("python3-cattr", "python3-requests")}
 READY = ".nerf-ready"  # written last: a chroot without it is incomplete
 # Where the host's pip finds its certificate authorities: a chroot's pip needs the same ones.
 HOST_CERTIFICATES = Path("/usr/local/share/ca-certificates")
@@ -120,7 +124,9 @@ def _trust_host_certificates(root: Path) -> None:
 
 
 def _apt_install(root: Path, packages: tuple[str, ...] | list[str]) -> None:
-    _run("chroot", root, "apt-get", "update", "-qq")
+    # Check-Valid-Until off: the mirror reachable here serves a snapshot whose sid Release file
+    # has expired (apt refuses it otherwise); its packages are still signed and checked.
+    _run("chroot", root, "apt-get", "-o", "Acquire::Check-Valid-Until=false", "update", "-qq")
     _run("chroot", root, "apt-get", "install", "-y", "-qq", "--no-install-recommends", *packages,
          env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})
     _run("chroot", root, "apt-get", "clean")
@@ -132,8 +138,9 @@ def ensure_chroot(suite: str = "trixie", log=print) -> Path:
     if suite not in SUITES:
         raise ValueError(f"unknown suite {suite!r}: choose one of {', '.join(SUITES)}")
     root = chroot_path(suite)
+    packages = PACKAGES + SUITE_PACKAGES[suite]
     if (root / READY).is_file():
-        missing = [p for p in PACKAGES if not (root / "var" / "lib" / "dpkg" / "info" / f"{p}.list").is_file()
+        missing = [p for p in packages if not (root / "var" / "lib" / "dpkg" / "info" / f"{p}.list").is_file()
                    and not any((root / "var" / "lib" / "dpkg" / "info").glob(f"{p}:*.list"))]
         if missing:  # a chroot cached before a package was added to PACKAGES
             log(f"apt-get install {' '.join(missing)}")
@@ -157,8 +164,8 @@ def ensure_chroot(suite: str = "trixie", log=print) -> Path:
     (partial / "etc" / "mtab").unlink(missing_ok=True)
     (partial / "etc" / "mtab").symlink_to("../proc/self/mounts")
     with mounted(partial):
-        log(f"apt-get install {' '.join(PACKAGES)}")
-        _apt_install(partial, PACKAGES)
+        log(f"apt-get install {' '.join(packages)}")
+        _apt_install(partial, packages)
         _trust_host_certificates(partial)
     (partial / READY).write_text(_run("chroot", partial, "blender", "--version").stdout.splitlines()[0] + "\n")
     if root.exists():
