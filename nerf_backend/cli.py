@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -243,14 +244,14 @@ def _run(args: argparse.Namespace) -> int:
         if args.suite is not None:
             run_suite(args.suite, [Variant.parse(n) for n in names], args.out, args.budget_seconds, args.iters,
                       points=args.points, curve_views=args.curve_views, seed=args.seed, device=args.device,
-                      overwrite=args.overwrite)
+                      overwrite=args.overwrite, command=args.command_line)
             print((args.out / "summary.md").read_text(), end="")
             print(f"written {args.out / 'summary.json'}, {args.out / 'summary.md'}, {args.out / 'summary.png'} "
                   f"and each scene's bench in {args.out}/NAME")
             return 0
         report = run_bench(args.dataset, [Variant.parse(n) for n in names], args.out, args.budget_seconds,
                            args.iters, points=args.points, curve_views=args.curve_views, seed=args.seed,
-                           device=args.device, overwrite=args.overwrite)
+                           device=args.device, overwrite=args.overwrite, command=args.command_line)
         print((args.out / "bench.md").read_text(), end="")
         print(f"written {args.out / 'bench.json'}, {args.out / 'bench.md'}, {args.out / 'bench.png'}")
         return 0
@@ -351,7 +352,10 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
     args = build_parser().parse_args(argv)
+    # Recorded in the bench's tables with the commit, so a figure can be made again.
+    args.command_line = shlex.join(["python", "-m", "nerf_backend", *argv])
     try:
         return _run(args)
     except (NerfError, OSError) as exc:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -48,6 +49,13 @@ def test_short_bench_writes_json_table_and_plot(tiny_demo_dataset, tmp_path):
         assert final["chamfer"] is None and final["geometry_unavailable"] or 0 < final["chamfer"] < 1
     table = (out / "bench.md").read_text()
     assert table.count("\n| ") == 1 + 1 + 3  # header, rule, one row a variant
+    # The command as typed and the commit that made the figures, in the JSON and the table.
+    command = (f"python -m nerf_backend bench {tiny_demo_dataset} --presets fast,auto,slim=preview+field.width=32 "
+               f"--iters 6 --points 2,6 --curve-views 2 --out {out}")
+    assert report["provenance"]["command"] == command
+    commit = report["provenance"]["commit"]
+    assert commit is None or re.fullmatch(r"[0-9a-f]{7,}(\+changes)?", commit), commit
+    assert f"Made by `{command}` at commit " in table
     assert "| Chamfer | F-score at τ |" in table
     with Image.open(out / "bench.png") as plot:
         assert plot.size[0] > 400 and plot.size[1] > 300

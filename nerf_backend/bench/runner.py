@@ -19,6 +19,7 @@ import torch
 from ..core.devices import resolve_device
 from ..core.errors import NerfError
 from ..core.files import write_json
+from ..core.provenance import provenance
 from ..data.dataset import load_split
 from ..data.run_folder import RunFolder
 from ..evaluation.geometry_eval import TAU_RULE, scene_tau, score_geometry, truth_file
@@ -137,7 +138,9 @@ def _raise_exit(signum, frame) -> None:
 
 def run_bench(dataset: Path, variants: list[Variant], out_dir: Path, budget_seconds: float | None,
               iterations: int | None, points: int | tuple[float, ...] = 6, curve_views: int = 8, seed: int = 0,
-              device: str = "auto", overwrite: bool = False) -> dict:
+              device: str = "auto", overwrite: bool = False, command: str | None = None) -> dict:
+    """Bench ``variants`` on ``dataset`` into ``out_dir``; ``command`` is the command line that
+    asked for it, recorded with the source's commit in the tables."""
     if (budget_seconds is None) == (iterations is None):
         raise NerfError("bench: give exactly one of --budget-seconds or --iters")
     try:
@@ -175,6 +178,7 @@ def run_bench(dataset: Path, variants: list[Variant], out_dir: Path, budget_seco
         "dataset": str(dataset.resolve()), "seed": seed, "device": device,
         "budget": {"seconds": budget_seconds} if budget_seconds is not None else {"iterations": iterations},
         "machine": {"torch": torch.__version__, "threads": torch.get_num_threads()},
+        "provenance": provenance(command),
         "variants": results,
         "ablation_order": ablation_order(results),
         "geometry": _geometry_record(dataset),

@@ -37,6 +37,7 @@ import torch
 
 from ..core.errors import NerfError
 from ..core.files import write_json
+from ..core.provenance import provenance
 from ..data.dataset import load_split
 from ..data.run_folder import RunFolder
 from ..training.collapse_guard import blank_psnr
@@ -209,8 +210,9 @@ def _check_folder(out_dir: Path, datasets: list[SuiteDataset], plan: dict, overw
 
 def run_suite(paths: list[Path], variants: list[Variant], out_dir: Path, budget_seconds: float | None,
               iterations: int | None, points: int | tuple[float, ...] = 6, curve_views: int = 8, seed: int = 0,
-              device: str = "auto", overwrite: bool = False) -> dict:
-    """Bench every dataset of ``paths`` into ``out_dir/NAME`` and write the summary; return it."""
+              device: str = "auto", overwrite: bool = False, command: str | None = None) -> dict:
+    """Bench every dataset of ``paths`` into ``out_dir/NAME`` and write the summary; return it.
+    ``command``: the command line, recorded with the source's commit."""
     if (budget_seconds is None) == (iterations is None):
         raise NerfError("bench: give exactly one of --budget-seconds or --iters")
     datasets, skipped = find_datasets(paths)
@@ -234,11 +236,12 @@ def run_suite(paths: list[Path], variants: list[Variant], out_dir: Path, budget_
                   f"{scene_dir}", file=sys.stderr, flush=True)
             # An unfinished scene folder holds no result to protect: it is redone.
             bench = run_bench(dataset.path, variants, scene_dir, budget_seconds, iterations, points=points,
-                              curve_views=curve_views, seed=seed, device=device, overwrite=True)
+                              curve_views=curve_views, seed=seed, device=device, overwrite=True, command=command)
         scenes.append(scene_summary(dataset, bench, scene_dir))
     summary = {
         "budget": budget, "seed": seed, "device": device,
         "machine": {"torch": torch.__version__, "threads": torch.get_num_threads()},
+        "provenance": provenance(command),
         "variants": plan["variants"],
         "collapse_margin_db": COLLAPSE_MARGIN_DB,
         "collapse_rule": {"detected": "the trainer logged a 'collapse' event (events.jsonl)",

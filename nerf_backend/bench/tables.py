@@ -6,6 +6,7 @@ import math
 from pathlib import Path
 
 from ..core.plotting import pyplot
+from ..core.provenance import provenance_line
 from .curves import THRESHOLDS_DB
 
 
@@ -20,7 +21,8 @@ def markdown_table(report: dict) -> str:
     lines = [
         f"Budget: {budget.get('seconds', budget.get('iterations'))} "
         f"{'training seconds' if 'seconds' in budget else 'iterations'} per variant, seed {report['seed']}, "
-        f"torch {report['machine']['torch']} on {report['machine']['threads']} threads.",
+        f"torch {report['machine']['torch']} on {report['machine']['threads']} threads. "
+        f"{provenance_line(report.get('provenance'))}".rstrip(),
         "",
         "| variant | iterations | test PSNR (dB) | SSIM | s to 20 / 25 / 30 dB | render s/image | peak MB | model MB |"
         + (" Chamfer | F-score at τ |" if geometry else ""),
@@ -75,7 +77,8 @@ def suite_markdown(summary: dict) -> str:
         f"{'training seconds' if 'seconds' in budget else 'iterations'} per variant and scene, seed {summary['seed']}, "
         f"torch {summary['machine']['torch']} on {summary['machine']['threads']} threads. Blank: the PSNR of an "
         "all-white image against the test views. Collapse: detected by the trainer (a `collapse` event) / final "
-        f"PSNR within {summary['collapse_margin_db']:g} dB of the blank image's.",
+        f"PSNR within {summary['collapse_margin_db']:g} dB of the blank image's. "
+        f"{provenance_line(summary.get('provenance'))}".rstrip(),
         "",
         "| scene | variant | test PSNR (dB) | SSIM | s to 25 / 30 dB | s/iteration | iterations | blank PSNR (dB) "
         "| collapse detected / final |",
