@@ -26,8 +26,8 @@ from typing import Callable
 
 INDEX = "https://download.pytorch.org/whl/"
 
-# PyTorch's CUDA builds (torch 2.9 to 2.14), newest first, with the CUDA version each needs the
-# driver to support; update with each torch release that adds or drops one.
+# PyTorch's CUDA builds as published for torch 2.9, newest first, with the CUDA version each needs
+# the driver to support; update with each torch release that adds or drops one.
 CUDA_BUILDS = (("cu130", (13, 0)), ("cu128", (12, 8)), ("cu126", (12, 6)))
 ROCM_BUILD = "rocm6.4"
 

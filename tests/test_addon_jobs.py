@@ -185,5 +185,5 @@ def test_backend_setup_makes_a_working_backend(tmp_path, monkeypatch):
     # LPIPS's weights, into the test's own torch hub cache: offline (as here) the step says why and
     # setup still succeeds.
     fetched = f"; LPIPS weights: {tmp_path / 'torch' / 'hub' / 'checkpoints' / 'alexnet-owt-7be5be79.pth'}"
-    offline = "; LPIPS unavailable: could not download https://download.pytorch.org/models/alexnet-owt-7be5be79.pth"
+    offline = "; LPIPS unavailable: could not download alexnet-owt-7be5be79.pth from download.pytorch.org into"
     assert fetched in status.detail or offline in status.detail, status.detail

@@ -23,6 +23,7 @@ from __future__ import annotations
 import importlib.util
 import re
 import socket
+import urllib.parse
 from pathlib import Path
 
 import torch
@@ -127,15 +128,18 @@ def fetch_backbone(url: str | None = None, destination: Path | None = None, prog
     if prefix is None:
         raise ValueError(f"{destination.name}: no SHA-256 prefix in the file name to check the download against")
     destination.parent.mkdir(parents=True, exist_ok=True)
+    # Named without its scheme: the reason ends up in self-contained HTML reports, which link nowhere.
+    parts = urllib.parse.urlsplit(url)
+    source = f"{Path(parts.path).name} from {parts.netloc or parts.path}"
     previous = socket.getdefaulttimeout()
     socket.setdefaulttimeout(DOWNLOAD_TIMEOUT_S)
     try:  # torch hub's downloader: a temporary file beside the destination, renamed once checked
         torch.hub.download_url_to_file(url, str(destination), hash_prefix=prefix.group(1), progress=progress)
     except RuntimeError as exc:
-        raise LpipsUnavailable(f"{url}: refused, its SHA-256 does not start with {prefix.group(1)} as "
+        raise LpipsUnavailable(f"{source}: refused, its SHA-256 does not start with {prefix.group(1)} as "
                                f"{destination.name} says ({exc}); nothing was kept") from None
     except OSError as exc:  # URLError, timeouts, a full disk
-        raise LpipsUnavailable(f"could not download {url} into {destination} ({getattr(exc, 'reason', exc)}); "
+        raise LpipsUnavailable(f"could not download {source} into {destination} ({getattr(exc, 'reason', exc)}); "
                                f"with no network, give --lpips-weights PATH to {BACKBONE_FILE}") from None
     finally:
         socket.setdefaulttimeout(previous)
