@@ -48,9 +48,6 @@ def chroot_path(suite: str = "trixie") -> Path:
     return CACHE / f"blender-gui-{suite}"
 
 
-# The trixie chroot, where it was before sid's was added (kept for callers that name one chroot).
-CHROOT = chroot_path("trixie")
-
 
 def _run(*command: str | os.PathLike, **kwargs) -> subprocess.CompletedProcess:
     result = subprocess.run([str(c) for c in command], capture_output=True, text=True, **kwargs)
