@@ -22,6 +22,7 @@ from .evaluation.geometry_eval import geometry_line, score_geometry
 from .evaluation.inference import render_cameras, render_split
 from .evaluation.mesh import mesh_run
 from .evaluation.report import write_report
+from .metrics.lpips_metric import BACKBONE_FILE
 from .metrics.registry import summary_line
 from .models.base import Model
 from .models.marched import MarchedModel
@@ -186,8 +187,8 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda", "mps"], help=DEVICE_HELP)
     for command in (evaluate, compare):
         command.add_argument("--lpips-weights", type=Path, default=None,
-                             help="torchvision's AlexNet weights (alexnet-owt-7be5be79.pth) for LPIPS "
-                                  "(default: torch hub's cache)")
+                             help=f"torchvision's AlexNet weights ({BACKBONE_FILE}) for LPIPS (default: torch "
+                                  "hub's cache, downloaded there on first use)")
         command.add_argument("--lpips-linear", type=Path, default=None,
                              help="LPIPS v0.1 linear-layer weights (default: the ones in the lpips package)")
 
