@@ -4,22 +4,22 @@ compare with Cycles.
 Blender-facing code (``properties``, ``operators`` with the buttons in ``dataset_ops``,
 ``training_ops`` and ``results_ops``, ``job_timer``, ``paths``, ``images``, ``panel``) only
 draws and calls; the job handling (``jobs``, ``backend_setup``) is plain Python that tests
-drive without Blender, and the camera maths is ``datasets_gen``'s (``camera_path``). The add-on never
-imports torch: training runs in the backend's own Python as a separate process.
+drive without Blender. The add-on reaches the backends only through static imports of
+``nerf_contract`` (file names, events, command lines) and ``datasets_gen`` (its options, camera
+maths, and in Blender its scene checks and renders). It never imports torch: training runs in
+the backend's own Python as a separate process.
 """
 
-_MODULES = ("properties", "operators", "panel")
-
-
 def register() -> None:
-    import importlib
+    # Here, not at the top: the plain modules (jobs, backend_setup...) are imported without bpy.
+    from . import operators, panel, properties
 
-    for name in _MODULES:
-        importlib.import_module(f".{name}", __package__).register()
+    for module in (properties, operators, panel):
+        module.register()
 
 
 def unregister() -> None:
-    import importlib
+    from . import operators, panel, properties
 
-    for name in reversed(_MODULES):
-        importlib.import_module(f".{name}", __package__).unregister()
+    for module in (panel, operators, properties):
+        module.unregister()

@@ -10,6 +10,13 @@ from pathlib import Path
 
 import bpy
 
+from datasets_gen import camera_path_export
+from datasets_gen.blender.compat import node_tree_of
+from datasets_gen.core.options import options_from_keywords, options_to_argv
+from nerf_contract import commands
+from nerf_contract.dataset_layout import CAMERA_PATH_NAME
+from nerf_contract.run_layout import CHECKPOINT_NAME
+
 from . import sources
 from .backend_setup import check_backend
 from .job_timer import animation_job, ensure_timer
@@ -38,46 +45,46 @@ class NERF_OT_render_animation(bpy.types.Operator):
         ok, message = check_backend(python)
         if not ok:
             raise RuntimeError(message)
-        if not (run_dir(context) / "checkpoint.pt").is_file():
+        if not (run_dir(context) / CHECKPOINT_NAME).is_file():
             raise RuntimeError(f"{run_dir(context)}: no trained run yet; train first")
         if scene.camera is None or scene.camera.type != "CAMERA":
             raise RuntimeError("the scene needs an active camera: its animation is what is rendered")
         job = animation_job(context)
         if job.is_running():
             raise RuntimeError("this animation is already being rendered")
-        export = sources.datasets_gen("camera_path_export")
         frames = scene_frames(context)
         dataset = dataset_dir(context)
-        path_dir = Path(export.path_folder(str(dataset), scene.camera.name))
-        path_json = path_dir / "camera_path.json"
+        path_json = Path(camera_path_export.path_folder(str(dataset), scene.camera.name)) / CAMERA_PATH_NAME
         frame_text = f"{frames.start}:{frames.stop - 1}:{frames.step}"
         stages = []
         if s.animation_cycles and bpy.app.binary_path:
             copy = job.folder.with_name(job.folder.name + ".scene.blend")  # the scene as it is now
             copy.parent.mkdir(parents=True, exist_ok=True)
             bpy.ops.wm.save_as_mainfile(filepath=str(copy), copy=True, check_existing=False)
-            script = sources.source_root() / "datasets_gen" / "generate.py"
-            # --overwrite: a changed animation replaces its stale Cycles frames; unchanged ones are kept.
-            stages.append(("cycles", [bpy.app.binary_path, "-b", str(copy), "--python", str(script), "--",
-                                      "--out", str(dataset), "--camera-path", scene.camera.name, "--frames", frame_text,
-                                      "--with-cycles", "--device", s.render_device, "--overwrite", "--no-progress"]))
+            # overwrite: a changed animation replaces its stale Cycles frames; unchanged ones are kept.
+            options = options_from_keywords(out_dir=str(dataset), open_scene=True, device=s.render_device,
+                                            overwrite=True)
+            argv = [*options_to_argv(options), *commands.camera_path_argv(scene.camera.name, frame_text, with_cycles=True),
+                    commands.GeneratorFlag.NO_PROGRESS]
+            stages.append(("cycles", commands.blender_script_command(bpy.app.binary_path, copy,
+                                                                     sources.generator_script(), argv)))
         else:  # the path alone is quick; without a Blender binary (the bpy module) Cycles renders here
-            self._export_here(context, export, dataset, frames, s.animation_cycles)
-        command = [python, "-m", "nerf_backend", "render", str(run_dir(context)), "--camera-path", str(path_json),
-                   "--out", str(job.folder), "--device", s.train_device, "--no-progress"]
-        stages.append(("nerf", command + (["--cycles"] if s.animation_cycles else [])))
-        env = dict(os.environ, PYTHONPATH=str(sources.source_root()), PYTHONUNBUFFERED="1")
+            self._export_here(context, dataset, frames, s.animation_cycles)
+        render = commands.render_camera_path_argv(run_dir(context), path_json, job.folder, device=s.train_device,
+                                                  cycles=s.animation_cycles)
+        stages.append(("nerf", commands.backend_command(python, render)))
+        env = dict(os.environ, PYTHONPATH=str(sources.backend_root()), PYTHONUNBUFFERED="1")
         job.start(path_json, len(frames), stages, env=env, cycles=s.animation_cycles)
         ensure_timer()
         self.report({"INFO"}, f"rendering {len(frames)} frames of {scene.camera.name!r} into {job.folder}")
         return {"FINISHED"}
 
     @staticmethod
-    def _export_here(context, export, dataset: Path, frames: range, cycles: bool) -> None:
+    def _export_here(context, dataset: Path, frames: range, cycles: bool) -> None:
         window_manager = context.window_manager
         window_manager.progress_begin(0, 1)
         try:
-            export.export_camera_path(str(dataset), context.scene.camera.name, frames, scene=context.scene,
+            camera_path_export.export_camera_path(str(dataset), context.scene.camera.name, frames, scene=context.scene,
                                       cycles=cycles, overwrite=True, device=settings(context).render_device,
                                       progress=False)
         finally:
@@ -108,8 +115,8 @@ class NERF_OT_import_mesh(bpy.types.Operator):
         run = run_dir(context)
         out = run / "mesh" / f"nerf_mesh_{s.mesh_resolution}.ply"
         out.parent.mkdir(parents=True, exist_ok=True)
-        run_backend(context, "mesh", str(run), "--out", str(out), "--resolution", str(s.mesh_resolution),
-                    "--device", s.train_device, "--overwrite")
+        run_backend(context, commands.mesh_argv(run, out, resolution=s.mesh_resolution, device=s.train_device,
+                                                overwrite=True))
         obj = import_mesh(context, out)
         self.report({"INFO"}, f"imported {obj.name}: {len(obj.data.vertices)} vertices from {out}")
         return {"FINISHED"}
@@ -134,7 +141,7 @@ def import_mesh(context, path: Path):
 
 def _vertex_colour_material(attribute: str):
     material = bpy.data.materials.get(MESH_MATERIAL) or bpy.data.materials.new(MESH_MATERIAL)
-    tree = sources.datasets_gen("blender_compat").node_tree_of(material)
+    tree = node_tree_of(material)
     tree.nodes.clear()
     colour = tree.nodes.new("ShaderNodeVertexColor")
     colour.layer_name = attribute

@@ -100,9 +100,9 @@ class BackendSetup:
              "fetching LPIPS's AlexNet weights")
 
     def __init__(self, venv: Path, base_python: str, requirements: Path, build: TorchBuild,
-                 source_root: Path | None = None) -> None:
+                 backend_root: Path | None = None) -> None:
         self.venv, self.base_python, self.requirements = Path(venv), base_python, Path(requirements)
-        self.build, self.source_root = build, source_root  # source_root: where nerf_backend is (LPIPS's step)
+        self.build, self.backend_root = build, backend_root  # backend_root: where nerf_backend is (LPIPS's step)
         self._step = 0
         self._line = ""
         self._lines: list[str] = []
@@ -156,7 +156,7 @@ class BackendSetup:
                 raise RuntimeError(problem)
             usable, message = describe_check(facts, self.build.device)
             self._warning = "" if usable else message  # a GPU it cannot use: shown, not fatal
-            if self.source_root is not None:
+            if self.backend_root is not None:
                 self._step = 3
                 message += "; " + self._fetch_lpips()
             self._state, self._message = "done", message
@@ -168,7 +168,7 @@ class BackendSetup:
         """The LPIPS step's one line (never fatal: LPIPS is reported unavailable without it)."""
         try:
             result = subprocess.run([str(self.python), "-c", FETCH_LPIPS_SCRIPT], capture_output=True, text=True,
-                                    timeout=3600, env=dict(os.environ, PYTHONPATH=str(self.source_root)))
+                                    timeout=3600, env=dict(os.environ, PYTHONPATH=str(self.backend_root)))
         except (OSError, subprocess.TimeoutExpired) as exc:
             return f"LPIPS unavailable: {exc}"
         lines = (result.stdout.strip() or result.stderr.strip() or "no output").splitlines()

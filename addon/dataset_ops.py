@@ -8,9 +8,12 @@ from pathlib import Path
 
 import bpy
 
+from datasets_gen import generator
+from datasets_gen.core.options import options_from_keywords
+from nerf_contract.dataset_layout import SPLITS, transforms_name
+
 from . import sources, ui_text
 from .job_timer import dataset_job, ensure_timer, status
-from .jobs import DatasetJob
 from .paths import dataset_dir, settings
 
 WARNINGS_DIALOG_WIDTH = 560  # pixels at UI scale 1: the scene checks' lines, wrapped to it
@@ -22,7 +25,7 @@ def dataset_options(context, out: Path):
     """The panel's settings as the generator's options (``GeneratorOptions``) for the open
     scene, rendered into ``out``: resumed when ``out`` already holds something."""
     s = settings(context)
-    return sources.datasets_gen("options").options_from_keywords(
+    return options_from_keywords(
         out_dir=str(out), open_scene=True, train_views=s.train_views, val_views=s.val_views, test_views=s.test_views,
         width=s.resolution, height=s.resolution, samples=s.samples, device=s.render_device, seed=s.seed,
         depth_normals=s.depth_normals, full_sphere=s.sphere, formats=tuple(sorted(s.dataset_formats)),
@@ -30,13 +33,12 @@ def dataset_options(context, out: Path):
 
 
 def _dataset_complete(out: Path) -> bool:
-    return all((out / f"transforms_{split}.json").is_file() for split in DatasetJob.SPLITS)
+    return all((out / transforms_name(split)).is_file() for split in SPLITS)
 
 
 def scene_warnings(context) -> list[str]:
     """What the generator's scene checks say about the open scene (missing files, settings
     it will replace for the render), without rendering anything."""
-    generator = sources.datasets_gen("generator")
     profile = generator.generate_dataset("", scene=context.scene, check_only=True, progress=False)
     checks = profile.get("checks", {})
     return [str(line) for line in list(checks.get("errors", [])) + list(checks.get("notes", []))]
@@ -79,10 +81,8 @@ class NERF_OT_generate_dataset(bpy.types.Operator):
             copy = out.with_name(out.name + ".scene.blend")  # the scene as it is now, unsaved edits included
             copy.parent.mkdir(parents=True, exist_ok=True)
             bpy.ops.wm.save_as_mainfile(filepath=str(copy), copy=True, check_existing=False)
-            # The background Blender opens the copy: the open scene needs no flag, and the job adds --out.
-            arguments = sources.datasets_gen("options").options_to_argv(options, omit=("out_dir",))
-            job.start(bpy.app.binary_path, copy, sources.source_root(), arguments,
-                      views={split: options.views(split) for split in DatasetJob.SPLITS})
+            # The background Blender opens the copy: the open scene needs no flag.
+            job.start(bpy.app.binary_path, copy, sources.generator_script(), options)
             ensure_timer()
             self.report({"INFO"}, f"rendering the dataset into {out} in the background")
             return {"FINISHED"}
@@ -90,7 +90,6 @@ class NERF_OT_generate_dataset(bpy.types.Operator):
 
     def _render_here(self, context, options):
         """No Blender binary to spawn (the bpy module): render in this process."""
-        generator = sources.datasets_gen("generator")
         window_manager = context.window_manager
         window_manager.progress_begin(0, 1)
         try:

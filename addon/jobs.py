@@ -16,8 +16,14 @@ import signal
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+
+from datasets_gen.core.options import GeneratorOptions, options_to_argv
+from nerf_contract import commands
+from nerf_contract.dataset_layout import CYCLES_FRAMES_DIR, SPLITS, VIEW_PNG_GLOB, transforms_name
+from nerf_contract.run_layout import ANIMATION_FRAMES_DIR, ANIMATION_RECORD, EVENTS_NAME, PREVIEW_NAME
+from nerf_contract.training_events import Checkpoint, Collapse, Done, Error, Start, Train, Val, read_events
 
 LOG_TAIL_LINES = 12
 
@@ -138,20 +144,6 @@ class _Job:
         return JobStatus("failed", error=f"{tail}\n(the process {reason})" if tail else f"the process {reason}")
 
 
-def read_events(run: Path) -> list[dict]:
-    """The run's event log; a line cut short by a kill is skipped."""
-    path = Path(run) / "events.jsonl"
-    if not path.is_file():
-        return []
-    events = []
-    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
-        try:
-            events.append(json.loads(line))
-        except json.JSONDecodeError:
-            continue
-    return events
-
-
 class TrainingJob(_Job):
     """``python -m nerf_backend train`` in the backend's Python, watched through the run's events."""
 
@@ -164,72 +156,66 @@ class TrainingJob(_Job):
 
     @property
     def preview_path(self) -> Path:
-        return self.run / "preview.png"
+        return self.run / PREVIEW_NAME
 
-    def start(self, python: str, source_root: Path, dataset: Path, preset: str, iterations: int | None = None,
+    def start(self, python: str, backend_root: Path, dataset: Path, preset: str, iterations: int | None = None,
               max_seconds: float | None = None, device: str = "auto", resume: bool = False,
               overwrite: bool = False, cpu_threads: int | None = None) -> None:
-        command = [python, "-m", "nerf_backend", "train", str(dataset), "--out", str(self.run), "--no-progress",
-                   "--device", device]
-        if cpu_threads is not None:
-            command += ["--cpu-threads", str(cpu_threads)]
-        command += ["--resume"] if resume else ["--preset", preset]
-        if iterations is not None:
-            command += ["--iters", str(iterations)]
-        if max_seconds is not None:
-            command += ["--max-seconds", str(max_seconds)]
-        if overwrite:
-            command.append("--overwrite")
-        env = dict(os.environ, PYTHONPATH=str(source_root), PYTHONUNBUFFERED="1")
+        """Train in the backend's ``python``, with ``backend_root`` (the folder holding
+        ``nerf_backend/``) on its path."""
+        command = commands.backend_command(python, commands.train_argv(
+            dataset, self.run, device=device, preset=preset, resume=resume, iterations=iterations,
+            max_seconds=max_seconds, cpu_threads=cpu_threads, overwrite=overwrite))
+        env = dict(os.environ, PYTHONPATH=str(backend_root), PYTHONUNBUFFERED="1")
         self._launch(command, env=env)
 
     def poll(self) -> JobStatus:
         running = self.is_running()  # before the events: a process that ends meanwhile has written them all
-        events = read_events(self.run)
-        done = [e for e in events if e.get("event") == "done"]
-        starts = [e for e in events if e.get("event") == "start"]
+        events = read_events(self.run / EVENTS_NAME)
+        done = [e for e in events if isinstance(e, Done)]
+        starts = [e for e in events if isinstance(e, Start)]
         last_start = events.index(starts[-1]) if starts else 0
         # A run just resumed still shows its last session's "done" until the new one logs its
         # start: while the process lives, the run is running.
         finished = bool(done) and events.index(done[-1]) > last_start and not running
         failure = self._ended_badly(finished, running)
-        errors = [e for e in events[last_start:] if e.get("event") == "error"]
+        errors = [e for e in events[last_start:] if isinstance(e, Error)]
         if failure is not None:
             if errors:
-                failure.error = errors[-1].get("message", "") + "\n" + failure.error
+                failure.error = errors[-1].message + "\n" + failure.error
             return failure
         if not events and not running:
             return JobStatus("idle")
-        start = starts[-1] if starts else {}
-        progress = [e for e in events if e.get("event") in ("train", "val", "checkpoint")]
-        latest = progress[-1] if progress else {}
-        iteration = latest.get("iteration", start.get("iteration", 0))
-        elapsed = latest.get("elapsed_s", 0.0)
-        target, budget = start.get("target_iterations"), start.get("max_seconds")
+        start = starts[-1] if starts else Start()
+        progress = [e for e in events if isinstance(e, (Train, Val, Checkpoint))]
+        latest = progress[-1] if progress else None
+        iteration = latest.iteration if latest else start.iteration
+        elapsed = latest.elapsed_s if latest else 0.0
+        target, budget = start.target_iterations, start.max_seconds
         fractions = [iteration / target if target else 0.0]
         if budget:
             fractions.append(elapsed / budget)
         fraction = min(1.0, max(fractions))
-        vals = [e for e in events if e.get("event") == "val"]
-        trains = [e for e in events if e.get("event") == "train"]
-        psnr = vals[-1]["psnr"] if vals else (trains[-1]["psnr"] if trains else None)
+        vals = [e for e in events if isinstance(e, Val)]
+        trains = [e for e in events if isinstance(e, Train)]
+        psnr = vals[-1].psnr if vals else (trains[-1].psnr if trains else None)
         seconds_left = elapsed * (1 - fraction) / fraction if 0 < fraction < 1 else None
         detail = f"iteration {iteration}" + (f" of {target}" if target and not budget else "")
         if psnr is not None:
             detail += f", PSNR {psnr:.2f} dB" + (" (validation)" if vals else " (batch)")
         # The trainer's collapse guard: what it found and what it did (a restart, or the end).
-        collapses = [e for e in events if e.get("event") == "collapse"]
-        warning = (f"Collapsed at iteration {collapses[-1].get('iteration')}: {collapses[-1].get('reason', '')}; "
-                   f"{collapses[-1].get('action', '')}" if collapses else "")
+        collapses = [e for e in events if isinstance(e, Collapse)]
+        warning = (f"Collapsed at iteration {collapses[-1].iteration}: {collapses[-1].reason}; {collapses[-1].action}"
+                   if collapses else "")
         if finished:
-            reason = done[-1].get("reason")
+            reason = done[-1].reason
             if reason == "collapsed":
                 return JobStatus("failed", fraction, detail, None, psnr, iteration,
                                  error=f"The model collapsed to the blank image. {warning}",
-                                 extra={"reason": reason, "val_psnr": done[-1].get("val_psnr")})
+                                 extra={"reason": reason, "val_psnr": done[-1].val_psnr})
             state = "cancelled" if reason == "cancelled" else "done"
             return JobStatus(state, 1.0 if state == "done" else fraction, detail, None, psnr, iteration,
-                             warning=warning, extra={"reason": reason, "val_psnr": done[-1].get("val_psnr")})
+                             warning=warning, extra={"reason": reason, "val_psnr": done[-1].val_psnr})
         return JobStatus("running", fraction, detail, seconds_left, psnr, iteration, warning=warning)
 
 
@@ -237,34 +223,30 @@ class DatasetJob(_Job):
     """``blender -b SCENE --python datasets_gen/generate.py -- ...`` rendering a dataset,
     watched by counting the images written."""
 
-    SPLITS = ("train", "val", "test")
-
     def __init__(self, out: Path) -> None:
         super().__init__(out)
 
-    def start(self, blender: str, blend_file: Path, source_root: Path, arguments: list[str],
-              views: dict[str, int] | None = None) -> None:
-        """Render ``blend_file`` with the generator's ``arguments`` (its flags, less --out: this
-        job's folder); ``views``: how many views each split has (the progress), None if unknown."""
-        script = Path(source_root) / "datasets_gen" / "generate.py"
-        command = [blender, "-b", str(blend_file), "--python", str(script), "--", *arguments,
-                   "--out", str(self.folder), "--no-progress"]
-        self._launch(command)
+    def start(self, blender: str, blend_file: Path, script: Path, options: GeneratorOptions) -> None:
+        """Render ``blend_file`` with the generator's ``script`` and ``options``, into this job's
+        folder (whatever ``options.out_dir`` says)."""
+        options = replace(options, out_dir=str(self.folder))
+        argv = [*options_to_argv(options), commands.GeneratorFlag.NO_PROGRESS]
+        self._launch(commands.blender_script_command(blender, blend_file, script, argv))
         data = self.record() or {}
-        data["views"] = dict(views or {})
+        data["views"] = {split: options.views(split) for split in SPLITS}
         self.record_path.write_text(json.dumps(data))
 
     def poll(self) -> JobStatus:
         running = self.is_running()  # first: a process that ends meanwhile has written everything
-        complete = all((self.folder / f"transforms_{split}.json").is_file() for split in self.SPLITS)
+        complete = all((self.folder / transforms_name(split)).is_file() for split in SPLITS)
         failure = self._ended_badly(complete, running)
         if failure is not None:
             return failure
         record = self.record() or {}
         views = record.get("views", {})
         expected = sum(views.values())
-        written = sum(len(list((self.folder / split).glob("r_*.png"))) if (self.folder / split).is_dir() else 0
-                      for split in self.SPLITS)
+        written = sum(len(list((self.folder / split).glob(VIEW_PNG_GLOB))) if (self.folder / split).is_dir() else 0
+                      for split in SPLITS)
         if complete and not running:
             return JobStatus("done", 1.0, f"{written} views written")
         if not running and written == 0:
@@ -303,7 +285,7 @@ class AnimationJob(_Job):
         super().cancel()
 
     def _frames_on_disk(self, kind: str, record: dict) -> int:
-        folder = Path(record["path"]).parent / "cycles" if kind == "cycles" else self.folder / "frames"
+        folder = Path(record["path"]).parent / CYCLES_FRAMES_DIR if kind == "cycles" else self.folder / ANIMATION_FRAMES_DIR
         return len(list(folder.glob("*.png"))) if folder.is_dir() else 0
 
     def _launch_next(self, record: dict) -> None:
@@ -341,7 +323,7 @@ class AnimationJob(_Job):
 
     def _result(self, record: dict) -> dict | None:
         """The backend's animation.json, if written by this job's render (not an earlier one)."""
-        path = self.folder / "animation.json"
+        path = self.folder / ANIMATION_RECORD
         try:
             if path.stat().st_mtime < record.get("started", 0.0):
                 return None

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import bpy
 
-from . import sources
+from nerf_contract.dataset_layout import safe_name
+
 from .jobs import python_in_venv
 from .torch_builds import PlatformFacts, TorchBuild, choose_build, detect_facts
 
@@ -29,7 +30,7 @@ def animation_dir(context) -> Path:
     """Where the run's renders of the scene camera's animation go: ``RUN/animation/CAMERA``
     (the camera path's own folder name, so the CLI and the add-on agree)."""
     camera = context.scene.camera
-    name = sources.datasets_gen("camera_path").safe_name(camera.name if camera is not None else "camera")
+    name = safe_name(camera.name if camera is not None else "camera")
     return run_dir(context) / "animation" / name
 
 

@@ -44,7 +44,7 @@ class NERF_OT_train(bpy.types.Operator):
             self.report({"ERROR"}, f"{job.run} already holds a run: press Resume, or choose another run folder")
             return {"CANCELLED"}
         by_time = s.budget_kind == "TIME"
-        job.start(python, sources.source_root(), dataset_dir(context), s.preset,
+        job.start(python, sources.backend_root(), dataset_dir(context), s.preset,
                   iterations=None if by_time else s.budget_iterations,
                   max_seconds=s.budget_seconds if by_time else None,
                   device=s.train_device, resume=self.resume, cpu_threads=training_cpu_threads())
@@ -76,7 +76,7 @@ class NERF_OT_setup_backend(bpy.types.Operator):
             self.report({"ERROR"}, "the backend is already being set up")
             return {"CANCELLED"}
         setup = BackendSetup(managed_venv(), default_base_python(), sources.backend_requirements(),
-                             torch_build(context), sources.source_root())
+                             torch_build(context), sources.backend_root())
         watch_backend_setup(setup)
         try:
             setup.start()

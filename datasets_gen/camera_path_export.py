@@ -15,16 +15,16 @@ import os
 import shutil
 from typing import Any, Optional, Sequence
 
-from .camera_path import CYCLES_DIR, PATH_FILE, camera_path_document, parse_frames, safe_name
-from .options import DatasetGenError, GeneratorOptions
-from .output_dir import write_json_atomic
+from nerf_contract.dataset_layout import CAMERA_PATH_NAME, CYCLES_FRAMES_DIR, camera_path_folder, transforms_name
 
-PATHS_DIR = "camera_paths"
+from .core.camera_path import camera_path_document, parse_frames
+from .core.options import DatasetGenError, GeneratorOptions
+from .io.output_dir import write_json_atomic
 
 
 def dataset_record(dataset_dir: str) -> dict[str, Any]:
     """The dataset's transforms_train.json (its world_to_nerf and generator settings)."""
-    path = os.path.join(dataset_dir, "transforms_train.json")
+    path = os.path.join(dataset_dir, transforms_name("train"))
     try:
         with open(path, encoding="utf-8") as handle:
             document = json.load(handle)
@@ -39,7 +39,7 @@ def dataset_record(dataset_dir: str) -> dict[str, Any]:
 
 
 def path_folder(dataset_dir: str, camera_name: str) -> str:
-    return os.path.join(dataset_dir, PATHS_DIR, safe_name(camera_name))
+    return os.path.join(dataset_dir, camera_path_folder(camera_name))
 
 
 def export_camera_path(
@@ -57,7 +57,7 @@ def export_camera_path(
     blender_journal()  # the clear error when this Python has no bpy
     import bpy
 
-    from .blender_camera_path import find_camera
+    from .blender.camera_animation import find_camera
 
     dataset_dir = os.path.abspath(dataset_dir)
     record = dataset_record(dataset_dir)
@@ -78,14 +78,14 @@ def export_camera_path(
 
 def _export(scene: Any, camera: Any, frames: Sequence[int], record: dict[str, Any], dataset_dir: str, cycles: bool,
             out_dir: Optional[str], overwrite: bool, device: str, progress: bool) -> str:
-    from .blender_camera_path import read_camera_frames, render_cycles_frames, scene_frame_rate
-    from .scene_bounds import render_view_layer
+    from .blender.camera_animation import read_camera_frames, render_cycles_frames, scene_frame_rate
+    from .blender.scene_bounds import render_view_layer
 
     camera_frames = read_camera_frames(scene, camera, frames)
     document = camera_path_document(camera.name, camera_frames, record["world_to_nerf"], scene_frame_rate(scene),
                                     cycles=cycles, dataset=dataset_dir)
     out_dir = os.path.abspath(out_dir or path_folder(dataset_dir, camera.name))
-    path = os.path.join(out_dir, PATH_FILE)
+    path = os.path.join(out_dir, CAMERA_PATH_NAME)
     _refuse_changed_path(path, document, overwrite)
     os.makedirs(out_dir, exist_ok=True)
     write_json_atomic(path, document)
@@ -93,7 +93,7 @@ def _export(scene: Any, camera: Any, frames: Sequence[int], record: dict[str, An
         from .generator import GENERATOR_NAME
 
         rendered = render_cycles_frames(scene, render_view_layer(scene), camera, camera_frames,
-                                        os.path.join(out_dir, CYCLES_DIR), record.get("generator", {}), device,
+                                        os.path.join(out_dir, CYCLES_FRAMES_DIR), record.get("generator", {}), device,
                                         progress)
         kept = len(camera_frames) - rendered
         if kept:
@@ -129,7 +129,7 @@ def _refuse_changed_path(path: str, document: dict[str, Any], overwrite: bool) -
         raise DatasetGenError(f"{path}: a different camera path is there (the camera's animation, lens or frames "
                               "changed); pass --overwrite to replace "
                               "it and its Cycles frames")
-    cycles_dir = os.path.join(os.path.dirname(path), CYCLES_DIR)
+    cycles_dir = os.path.join(os.path.dirname(path), CYCLES_FRAMES_DIR)
     if os.path.isdir(cycles_dir):
         shutil.rmtree(cycles_dir)
 

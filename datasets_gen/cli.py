@@ -18,7 +18,9 @@ import json
 import sys
 from typing import Any, Callable, NoReturn, Optional, Sequence
 
-from .options import (
+from nerf_contract.commands import GeneratorFlag
+
+from .core.options import (
     DEFAULT_OPTIONS,
     GROUPS,
     SETTINGS,
@@ -65,18 +67,18 @@ def build_parser() -> argparse.ArgumentParser:
                         help="with --suite: also render this .blend into DIR/STEM (repeatable)")
     parser.add_argument("--merge", metavar="DIR",
                         help="join the shard JSON files in DIR into the dataset's JSON (no SCENE, no --out)")
-    groups[_LONG_RENDERS_GROUP].add_argument("--no-progress", action="store_true",
+    groups[_LONG_RENDERS_GROUP].add_argument(GeneratorFlag.NO_PROGRESS, action="store_true",
                                              help="do not show progress on stderr")
     path = parser.add_argument_group("camera animation (for python -m nerf_backend render RUN --camera-path)")
-    path.add_argument("--camera-path", metavar="CAMERA",
+    path.add_argument(GeneratorFlag.CAMERA_PATH, metavar="CAMERA",
                       help="write CAMERA's animation as a camera path in the NeRF frame of the dataset in --out "
                       "(which must exist) into DATASET/camera_paths/CAMERA/camera_path.json; frames have the scene's render "
                       "size, scaled by --resolution-percentage P when given")
-    path.add_argument("--frames", metavar="S:E[:STEP]",
+    path.add_argument(GeneratorFlag.FRAMES, metavar="S:E[:STEP]",
                       help="with --camera-path: the frames, both ends included (default: the scene's frame range)")
     # Not "--cycles": Blender's Cycles add-on parses the arguments after "--" too, and takes any
     # prefix of its --cycles-device and --cycles-print-stats as ambiguous (the run then stops).
-    path.add_argument("--with-cycles", dest="cycles", action="store_true",
+    path.add_argument(GeneratorFlag.WITH_CYCLES, dest="cycles", action="store_true",
                       help="with --camera-path: also render those frames with Cycles, with the dataset's settings "
                       "(frames already rendered are kept)")
     return parser
@@ -151,7 +153,8 @@ def main(argv: Optional[Sequence[str]] = None, blender_file: str = "") -> int:
     if args.suite is not None:
         return _suite(args, parser)
     if args.camera_path is None and (args.frames is not None or args.cycles):
-        parser.error(f"argument {'--frames' if args.frames is not None else '--with-cycles'}: needs --camera-path CAMERA")
+        flag = GeneratorFlag.FRAMES if args.frames is not None else GeneratorFlag.WITH_CYCLES
+        parser.error(f"argument {flag}: needs {GeneratorFlag.CAMERA_PATH} CAMERA")
     if args.camera_path is not None:
         return _camera_path(args, parser, blender_file)
     if args.suite_scene:
@@ -166,7 +169,7 @@ def main(argv: Optional[Sequence[str]] = None, blender_file: str = "") -> int:
 
 def _suite(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     """--suite DIR: the trap scenes, the demo and each --suite-scene, each into DIR/NAME."""
-    from .builtin_scenes import SUITE_BUILTINS
+    from .core.builtin_scenes import SUITE_BUILTINS
     from .suite import plan_suite, run_suite
 
     extra = [flag for flag, value in (
@@ -191,8 +194,8 @@ def _suite(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
 
 def _camera_path(args: argparse.Namespace, parser: argparse.ArgumentParser, blender_file: str) -> int:
     """--camera-path CAMERA: the animation of a camera into the dataset in --out."""
-    from .camera_path import parse_frames
     from .camera_path_export import export_from_options
+    from .core.camera_path import parse_frames
 
     options = options_from_args(args, parser, blender_file)
     if args.frames is not None:
@@ -211,7 +214,7 @@ def _camera_path(args: argparse.Namespace, parser: argparse.ArgumentParser, blen
 
 
 def _merge(out_dir: str) -> None:
-    from .shards import merge
+    from .io.shards import merge
 
     merge(out_dir)
 

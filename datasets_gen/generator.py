@@ -17,12 +17,11 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Optional, Sequence
 
-from . import trajectories
-from .dataset_json import frame_entry, scene_profile, transforms_document
-from .depth_normals import DEPTH_CHANNELS, LAYOUT_RECORD, NORMAL_CHANNELS
-from .exr import ExrError, check_file
-from .formats import write_formats
-from .frame_fit import (
+from nerf_contract.dataset_layout import GEOMETRY_NAME, PRIOR_NAME, PROFILE_NAME, SPLITS
+
+from .core import trajectories
+from .core.builtin_scenes import builtin_scene
+from .core.frame_fit import (
     BLENDER_RULE,
     DEMO_RULE,
     FIT_MARGIN,
@@ -33,13 +32,16 @@ from .frame_fit import (
     fit_target_radius,
     view_half_angle,
 )
-from .intrinsics import CameraSettings, Intrinsics, ray_length_factors
-from .materials import classify_material
-from .options import SPLITS, DatasetGenError, GeneratorOptions, options_from_keywords, validate_camera
-from .output_dir import (
-    GEOMETRY_NAME,
-    PRIOR_NAME,
-    PROFILE_NAME,
+from .core.intrinsics import CameraSettings, Intrinsics, ray_length_factors
+from .core.materials import classify_material
+from .core.options import DatasetGenError, GeneratorOptions, options_from_keywords, validate_camera
+from .core.progress import ViewProgress
+from .core.scene_checks import CheckOutcome, SceneFacts, evaluate
+from .io.dataset_json import frame_entry, scene_profile, transforms_document
+from .io.depth_normals import DEPTH_CHANNELS, LAYOUT_RECORD, NORMAL_CHANNELS
+from .io.exr import ExrError, check_file
+from .io.formats import write_formats
+from .io.output_dir import (
     check_output_dir,
     finish_run,
     prepare_output_dir,
@@ -52,9 +54,7 @@ from .output_dir import (
     write_json_atomic,
     write_npz_atomic,
 )
-from .png_check import PngError, check_rgba8
-from .progress import ViewProgress
-from .scene_checks import CheckOutcome, SceneFacts, evaluate
+from .io.png_check import PngError, check_rgba8
 
 GENERATOR_NAME = "datasets_gen"
 GENERATOR_VERSION = 2
@@ -110,7 +110,7 @@ def blender_journal() -> Any:
 
     bpy-facing modules are imported only now, so bad input is reported without waiting for Blender."""
     try:
-        from .scene_state import SettingsJournal
+        from .blender.scene_state import SettingsJournal
     except ModuleNotFoundError as error:
         if error.name not in ("bpy", "bmesh", "mathutils"):
             raise
@@ -142,7 +142,7 @@ def _run_in_blender(
 ) -> dict[str, Any]:
     import bpy
 
-    from .blender_render import add_dataset_camera, configure_render, render_settings_record
+    from .blender.render import add_dataset_camera, configure_render, render_settings_record
 
     survey = _survey(options, scene, journal)
     if options.check_only:
@@ -191,9 +191,9 @@ def _run_in_blender(
 
 def _survey(options: GeneratorOptions, scene: Any, journal: Any) -> _Survey:
     """Load the scene, check it (refusing with DatasetGenError), fit it, and build its profile."""
-    from .blender_render import read_scene_camera
-    from .scene_bounds import collect_geometry, render_view_layer, reveal_render_visible
-    from .scene_facts import describe_material, describe_world, missing_files, source_settings, texture_records
+    from .blender.render import read_scene_camera
+    from .blender.scene_bounds import collect_geometry, render_view_layer, reveal_render_visible
+    from .blender.scene_facts import describe_material, describe_world, missing_files, source_settings, texture_records
 
     scene, source = load_scene(options, scene)
     label = source.get("file", source["source"])
@@ -262,7 +262,7 @@ def _scene_files(survey: _Survey) -> tuple[Optional[FileWriter], Optional[FileWr
     except ImportError:
         reason = "this Blender's Python has no numpy"
         return _no_occupancy_prior(survey.profile, reason), _no_scene_geometry(survey.profile, reason)
-    from .scene_occupancy import collect_parts
+    from .blender.scene_occupancy import collect_parts
 
     started = time.perf_counter()
     scene_parts = collect_parts(survey.view_layer, survey.frame)
@@ -271,7 +271,7 @@ def _scene_files(survey: _Survey) -> tuple[Optional[FileWriter], Optional[FileWr
 
 def _occupancy_prior(survey: _Survey, scene_parts: Any, started: float) -> Optional[FileWriter]:
     """Voxelise the scene into the profile's `occupancy_prior`; return its npz's writer (None without)."""
-    from .scene_occupancy import build_occupancy_prior
+    from .blender.scene_occupancy import build_occupancy_prior
 
     try:
         record, arrays = build_occupancy_prior(scene_parts)
@@ -293,7 +293,7 @@ def _no_occupancy_prior(profile: dict[str, Any], reason: str) -> None:
 def _scene_geometry(survey: _Survey, scene_parts: Any) -> Optional[FileWriter]:
     """Weld the scene's triangles into the profile's `geometry` (the truth `eval --geometry`
     measures a NeRF against); return its PLY's writer (None without)."""
-    from .surface_mesh import geometry_record, weld, write_ply_atomic
+    from .io.surface_mesh import geometry_record, weld, write_ply_atomic
 
     triangles = scene_parts.all_triangles()
     if len(triangles) == 0:
@@ -334,7 +334,7 @@ def _render_views(
 ) -> tuple[dict[str, dict], tuple[int, float, float]]:
     """Render this run's views (skipping verified ones on --resume); return the split documents
     and (views rendered, seconds in the loop, seconds inside Cycles)."""
-    from .blender_render import place_camera, render_view
+    from .blender.render import place_camera, render_view
 
     frame, intrinsics = survey.frame, survey.intrinsics
     factors = ray_length_factors(intrinsics) if depth_splits else None
@@ -377,13 +377,12 @@ def load_scene(options: GeneratorOptions, scene: Any) -> tuple[Any, dict[str, An
     """The scene to render and a record of where it came from (file and SHA-256 when on disk)."""
     import bpy
 
-    from .scene_facts import blend_identity
+    from .blender.scene_facts import blend_identity
 
     if options.builtin_name is not None:
-        from .builtin_scenes import builtin_scene
+        from .blender.builtin_scenes import build_builtin
 
-        builtin = builtin_scene(options.builtin_name)
-        return builtin.build(), builtin.source_record()
+        return build_builtin(options.builtin_name), builtin_scene(options.builtin_name).source_record()
     if options.open_scene:
         scene = scene if scene is not None else bpy.context.scene
         path = bpy.data.filepath

@@ -23,9 +23,11 @@ import time
 from dataclasses import dataclass
 from typing import Any, Optional, Sequence
 
-from .builtin_scenes import SUITE_BUILTINS, builtin_scene
-from .options import DEFAULT_OPTIONS, SPLITS, DatasetGenError, GeneratorOptions
-from .output_dir import read_json, require_same_settings, transforms_name
+from nerf_contract.dataset_layout import SPLITS
+
+from .core.builtin_scenes import SUITE_BUILTINS, builtin_scene
+from .core.options import DEFAULT_OPTIONS, DatasetGenError, GeneratorOptions
+from .io.output_dir import read_json, require_same_settings, transforms_name
 
 PROG = "datasets_gen --suite"
 
@@ -79,8 +81,8 @@ def _recorded_settings(out_dir: str) -> Optional[dict[str, Any]]:
 def check_kept_dataset(scene: SuiteScene) -> None:
     """Refuse (DatasetGenError naming the differences) a complete dataset that this call's flags
     would not make: other settings, another built-in scene, or a .blend whose content changed."""
+    from .blender.scene_facts import blend_identity
     from .generator import settings_record
-    from .scene_facts import blend_identity
 
     where = os.path.join(scene.out_dir, transforms_name("train"))
     recorded = _recorded_settings(scene.out_dir)

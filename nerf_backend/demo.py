@@ -18,11 +18,15 @@ import sys
 import time
 from pathlib import Path
 
+from nerf_contract.dataset_layout import CAMERA_PATH_NAME, GEOMETRY_NAME, SPLITS, camera_path_folder, transforms_name
+from nerf_contract.run_layout import ANIMATION_RECORD, CONFIG_NAME, METRICS_NAME, RENDERS_DIR, REPORT_DIR, REPORT_INDEX
+from nerf_contract.training_events import Done
+
 from .data.run_folder import RunFolder
+from .evaluation.geometry_eval import GEOMETRY_NAME as GEOMETRY_RECORD
 from .evaluation.geometry_eval import geometry_line
 
-SPLITS = ("train", "val", "test")
-DEMO_CAMERA = "turntable camera"  # the demo scene's animated camera (datasets_gen/demo_scene.py)
+DEMO_CAMERA = "turntable camera"  # the demo scene's animated camera (datasets_gen/blender/demo_scene.py)
 
 
 def _stage(name: str, command: list[str], timings: dict[str, float]) -> None:
@@ -34,7 +38,7 @@ def _stage(name: str, command: list[str], timings: dict[str, float]) -> None:
         raise SystemExit(f"demo: the {name} stage failed (exit code {result.returncode})")
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m nerf_backend.demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("out/demo"))
     # 400×400: the turntable's 800×600 frames come out sharp (32.65 dB against Cycles, where a
@@ -59,77 +63,95 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--animation-frames", default="1:48:4", metavar="S:E[:STEP]",
                         help="frames of the demo's turntable camera (800×600) rendered by Cycles and the NeRF")
-    args = parser.parse_args(argv)
+    return parser
 
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
     dataset, run = args.out / "dataset", args.out / "run"
     python = sys.executable
     timings: dict[str, float] = {}
-    complete = all((dataset / f"transforms_{split}.json").exists() for split in SPLITS)
+    differences = _dataset_stage(args, dataset, python, timings)
+    _train_stage(args, dataset, run, python, timings, afresh=bool(differences))
+    evaluate = [python, "-m", "nerf_backend", "eval", str(run), "--split", "test"]
+    if (dataset / GEOMETRY_NAME).is_file():
+        evaluate.append("--geometry")
+    else:  # a dataset from before datasets_gen wrote the scene's surface
+        print(f"== note: {dataset} has no {GEOMETRY_NAME} (made before datasets_gen wrote it): no geometry scores")
+    _stage("render + eval", evaluate, timings)
+    _stage("camera path", [python, "-m", "datasets_gen", "--demo", "--out", str(dataset), "--camera-path",
+                           DEMO_CAMERA, "--frames", args.animation_frames, "--with-cycles"], timings)
+    path = dataset / camera_path_folder(DEMO_CAMERA) / CAMERA_PATH_NAME
+    _stage("animation", [python, "-m", "nerf_backend", "render", str(run), "--camera-path", str(path), "--cycles"],
+           timings)
+    _stage("report", [python, "-m", "nerf_backend", "report", str(run)], timings)
+    _summary(args, dataset, run, path, timings)
+    return 0
+
+
+def _dataset_stage(args: argparse.Namespace, dataset: Path, python: str, timings: dict[str, float]) -> list[str]:
+    """Render the demo's dataset, resume it, or keep it when complete and made with these
+    settings; returns how a kept dataset differed (then it was rendered again)."""
+    complete = all((dataset / transforms_name(split)).exists() for split in SPLITS)
     differences = _dataset_differences(dataset, args) if complete else []
     if complete and not differences:
         print(f"== dataset: reusing the complete dataset in {dataset}")
-    else:
-        command = [python, "-m", "datasets_gen", "--demo", "--out", str(dataset),
-                   "--resolution", str(args.resolution), "--train-views", str(args.train_views),
-                   "--val-views", str(args.val_views), "--test-views", str(args.test_views),
-                   "--samples", str(args.samples), "--seed", str(args.seed)]
-        if differences:  # an earlier demo's (the defaults have changed): its run goes with it
-            print(f"== dataset: {dataset} was rendered with other settings ({'; '.join(differences)}): "
-                  f"rendering it again and training afresh")
-            command.append("--overwrite")
-        elif dataset.exists():
-            print(f"== dataset: {dataset} is incomplete (an interrupted demo); resuming it")
-            command.append("--resume")
-        _stage("dataset", command, timings)
+        return differences
+    command = [python, "-m", "datasets_gen", "--demo", "--out", str(dataset),
+               "--resolution", str(args.resolution), "--train-views", str(args.train_views),
+               "--val-views", str(args.val_views), "--test-views", str(args.test_views),
+               "--samples", str(args.samples), "--seed", str(args.seed)]
+    if differences:  # an earlier demo's (the defaults have changed): its run goes with it
+        print(f"== dataset: {dataset} was rendered with other settings ({'; '.join(differences)}): "
+              f"rendering it again and training afresh")
+        command.append("--overwrite")
+    elif dataset.exists():
+        print(f"== dataset: {dataset} is incomplete (an interrupted demo); resuming it")
+        command.append("--resume")
+    _stage("dataset", command, timings)
+    return differences
 
+
+def _train_stage(args: argparse.Namespace, dataset: Path, run: Path, python: str, timings: dict[str, float],
+                 afresh: bool) -> None:
+    """Train the demo's run, resuming an earlier demo's unless the dataset was made again."""
     train = [python, "-m", "nerf_backend", "train", str(dataset), "--out", str(run),
              "--iters", str(args.iterations), "--seed", str(args.seed)]
     if args.train_seconds is not None:
         train += ["--max-seconds", str(args.train_seconds)]
-    if differences:
+    if afresh:
         train += ["--preset", args.preset, "--overwrite"]
     else:
-        train += ["--resume"] if (run / "config.json").exists() else ["--preset", args.preset]
+        train += ["--resume"] if (run / CONFIG_NAME).exists() else ["--preset", args.preset]
     _stage("train", train, timings)
-    evaluate = [python, "-m", "nerf_backend", "eval", str(run), "--split", "test"]
-    if (dataset / "scene_geometry.ply").is_file():
-        evaluate.append("--geometry")
-    else:  # a dataset from before datasets_gen wrote the scene's surface
-        print(f"== note: {dataset} has no scene_geometry.ply (made before datasets_gen wrote it): no geometry scores")
-    _stage("render + eval", evaluate, timings)
-    _stage("camera path", [python, "-m", "datasets_gen", "--demo", "--out", str(dataset), "--camera-path",
-                           DEMO_CAMERA, "--frames", args.animation_frames, "--with-cycles"], timings)
-    path = dataset / "camera_paths" / DEMO_CAMERA.replace(" ", "_") / "camera_path.json"
-    _stage("animation", [python, "-m", "nerf_backend", "render", str(run), "--camera-path", str(path), "--cycles"],
-           timings)
-    _stage("report", [python, "-m", "nerf_backend", "report", str(run)], timings)
 
-    metrics = json.loads((run / "metrics.json").read_text())
+
+def _summary(args: argparse.Namespace, dataset: Path, run: Path, path: Path, timings: dict[str, float]) -> None:
+    metrics = json.loads((run / METRICS_NAME).read_text())
     print("\n== demo done")
     for name, seconds in timings.items():
         print(f"   {name:<14} {seconds:7.1f} s")
-    print(f"   dataset: {dataset}\n   run:     {run}\n   renders: {run / 'renders' / 'test'}")
+    print(f"   dataset: {dataset}\n   run:     {run}\n   renders: {run / RENDERS_DIR / 'test'}")
     done = _last_done_event(run)
     if done is not None:
-        print(f"   trained {done['iteration']} iterations in {done['elapsed_s']:.1f} s of training"
-              + ("" if done["reason"] != "time" else
+        print(f"   trained {done.iteration} iterations in {done.elapsed_s:.1f} s of training"
+              + ("" if done.reason != "time" else
                  f": the time budget stopped it before {args.iterations} iterations, so this figure is "
                  "lower than the README's"))
     lpips = (f"LPIPS {metrics['lpips']:.4f}" if metrics["lpips"] is not None
              else "LPIPS unavailable (no AlexNet weights here; see the report)")
     print(f"   mean test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {lpips} "
-          f"over {metrics['views']} views ({run / 'metrics.json'})")
-    geometry = run / "geometry.json"
+          f"over {metrics['views']} views ({run / METRICS_NAME})")
+    geometry = run / GEOMETRY_RECORD
     if geometry.is_file():
         print(f"   {geometry_line(json.loads(geometry.read_text()))}")
-    animation = json.loads((run / "animation" / path.parent.name / "animation.json").read_text())
+    animation = json.loads((run / "animation" / path.parent.name / ANIMATION_RECORD).read_text())
     width, height = animation["size"]
     seconds = animation.get("seconds_per_frame")
     print(f"   animation: {len(animation['frames'])} frames at {width}×{height}"
           + (f", {seconds:.2f} s a frame" if seconds is not None else "")
           + f", PSNR {animation['mean']['psnr']:.2f} dB against Cycles: {animation['side_by_side_video']}")
-    print(f"   report:  {(run / 'report' / 'index.html').resolve()}")
-    return 0
+    print(f"   report:  {(run / REPORT_DIR / REPORT_INDEX).resolve()}")
 
 
 def _dataset_differences(dataset: Path, args: argparse.Namespace) -> list[str]:
@@ -137,7 +159,7 @@ def _dataset_differences(dataset: Path, args: argparse.Namespace) -> list[str]:
     (size, samples, view counts, seed, as its ``transforms_train.json`` records them); empty
     when it is the same."""
     try:
-        settings = json.loads((dataset / "transforms_train.json").read_text())["generator"]["settings"]
+        settings = json.loads((dataset / transforms_name("train")).read_text())["generator"]["settings"]
         have = {"size": f"{settings['camera']['resolution_x']}×{settings['camera']['resolution_y']}",
                 "samples": settings["samples"], "views": settings["views"], "seed": settings["seed"]}
     except (OSError, ValueError, KeyError, TypeError):
@@ -147,9 +169,9 @@ def _dataset_differences(dataset: Path, args: argparse.Namespace) -> list[str]:
     return [f"{key} {have[key]} instead of {wanted[key]}" for key in wanted if have[key] != wanted[key]]
 
 
-def _last_done_event(run: Path) -> dict | None:
+def _last_done_event(run: Path) -> Done | None:
     """The training's last ``done`` event (iteration, elapsed_s, reason), if it logged one."""
-    done = [event for event in RunFolder(run).read_events() if event.get("event") == "done"]
+    done = [event for event in RunFolder(run).read_events() if isinstance(event, Done)]
     return done[-1] if done else None
 
 

@@ -5,13 +5,17 @@ disable and remove. See tests/blender_scripts/addon_session.py for the session i
 
 from __future__ import annotations
 
+import io
 import json
 import os
+import subprocess
+import sys
 import time
 import zipfile
+from pathlib import Path
 
 import pytest
-
+import tomllib
 from blender_versions import LTS_VERSIONS, PY313_VERSIONS, run_in_blender
 from conftest import REPO_ROOT, SHARED_DIR, run_python
 
@@ -38,13 +42,36 @@ def extension_zip(tmp_path_factory):
     return zips[0]
 
 
-def test_the_zip_holds_the_addon_and_both_packages_and_nothing_else(extension_zip):
-    names = zipfile.ZipFile(extension_zip).namelist()
+def test_the_zip_holds_the_addon_the_backend_and_the_wheel_and_nothing_else(extension_zip):
+    archive = zipfile.ZipFile(extension_zip)
+    names = archive.namelist()
     assert "blender_manifest.toml" in names and "__init__.py" in names and "operators.py" in names
-    assert "nerf_backend/training/trainer.py" in names and "datasets_gen/generate.py" in names
+    assert "nerf_backend/training/trainer.py" in names and "nerf_contract/commands.py" in names
     assert "nerf_backend/configs/presets.json" in names  # data files travel with the code
     assert "nerf_backend/requirements.txt" in names and "nerf_backend/requirements-no-deps.txt" in names
     assert not [n for n in names if "__pycache__" in n or n.startswith("tests/") or n.endswith(".pyc")]
+    # The manifest's one wheel: what the add-on imports, and nothing else.
+    manifest = tomllib.loads(archive.read("blender_manifest.toml").decode())
+    wheel = zipfile.ZipFile(io.BytesIO(archive.read(manifest["wheels"][0].removeprefix("./"))))
+    packages = {name.split("/")[0] for name in wheel.namelist()}
+    assert packages == {"datasets_gen", "nerf_contract", "nerf_from_blender_modules-0.1.0.dist-info"}
+    assert "datasets_gen/generate.py" in wheel.namelist() and not [n for n in names if n.startswith("datasets_gen/")]
+
+
+def test_the_wheel_installs_with_pip_and_imports(extension_zip, tmp_path):
+    """The wheel is a valid one: pip installs it (checking its RECORD) and its packages import
+    from there in a Python started elsewhere."""
+    archive = zipfile.ZipFile(extension_zip)
+    manifest = tomllib.loads(archive.read("blender_manifest.toml").decode())
+    wheel = tmp_path / Path(manifest["wheels"][0]).name
+    wheel.write_bytes(archive.read(manifest["wheels"][0].removeprefix("./")))
+    target = tmp_path / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--no-index", "--target", str(target),
+                    str(wheel)], check=True, capture_output=True, text=True)
+    probe = subprocess.run([sys.executable, "-c", "import datasets_gen.core.options, nerf_contract.commands, sys; "
+                            "print(datasets_gen.__file__)"], cwd=tmp_path, capture_output=True, text=True,
+                           env={**os.environ, "PYTHONPATH": str(target)}, check=True)
+    assert probe.stdout.strip().startswith(str(target))
 
 
 # The Blenders users run: the .venv's bpy (5.0.1) in `make test`; 4.2 and 4.5 LTS (Python 3.11)
@@ -85,7 +112,9 @@ def test_installs_enables_and_registers(session):
     install = session["install"]
     assert install["result"] == ["FINISHED"] and install["enabled"]
     assert set(install["classes"]) == PANELS | OPERATORS
-    assert {"blender_manifest.toml", "nerf_backend", "datasets_gen"} <= set(install["installed_files"])
+    assert {"blender_manifest.toml", "nerf_backend", "nerf_contract", "wheels"} <= set(install["installed_files"])
+    # The add-on's datasets_gen is the wheel's, installed by Blender (not the checkout's).
+    assert "extensions" in install["datasets_gen"] and "site-packages" in install["datasets_gen"], install
 
 
 def test_every_setting_and_choice_has_a_tooltip(session):

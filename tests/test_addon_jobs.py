@@ -13,11 +13,12 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import REPO_ROOT, SHARED_DIR, camera_path_through_test_views
 
 from addon.backend_setup import BackendSetup, check_backend
-from addon.torch_builds import TorchBuild
 from addon.jobs import AnimationJob, DatasetJob, TrainingJob
-from conftest import REPO_ROOT, SHARED_DIR, camera_path_through_test_views
+from addon.torch_builds import TorchBuild
+from datasets_gen.core.options import options_from_keywords
 
 
 def _wait_for(job, predicate, timeout=300.0):
@@ -84,8 +85,9 @@ def test_dataset_job_renders_in_a_background_blender(tmp_path):
         pytest.skip("no blender binary on this machine")
     out = tmp_path / "dataset"
     job = DatasetJob(out)
-    job.start(blender, SHARED_DIR / "scenes" / "A.blend", REPO_ROOT,
-              ["--train-views", "4", "--val-views", "1", "--test-views", "2", "--resolution", "16", "--samples", "2"])
+    options = options_from_keywords(out_dir=str(out), open_scene=True, train_views=4, val_views=1, test_views=2,
+                                    width=16, height=16, samples=2)
+    job.start(blender, SHARED_DIR / "scenes" / "A.blend", REPO_ROOT / "datasets_gen" / "generate.py", options)
     fractions = []
     deadline = time.monotonic() + 600
     while job.is_running() and time.monotonic() < deadline:

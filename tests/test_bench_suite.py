@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_python
 from PIL import Image
 
-from conftest import run_python
-from datasets_gen.builtin_scenes import SUITE_BUILTINS, TRAP_SCENES
+from datasets_gen.core.builtin_scenes import SUITE_BUILTINS, TRAP_SCENES
 from nerf_backend.bench import scene_blank_psnr
 from nerf_backend.bench.suite import SuiteDataset, scene_summary
 

@@ -14,18 +14,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import REPO_ROOT, camera_path_through_test_views, run_python
 
-from datasets_gen.camera_path import FrameCamera, camera_path_document, camera_to_nerf, parse_frames
-from datasets_gen.intrinsics import CameraSettings
-from datasets_gen.options import DatasetGenError
+from datasets_gen.core.camera_path import FrameCamera, camera_path_document, camera_to_nerf, parse_frames
+from datasets_gen.core.intrinsics import CameraSettings
+from datasets_gen.core.options import DatasetGenError
 from nerf_backend.core.errors import DatasetError
 from nerf_backend.core.video import video_info, write_video
 from nerf_backend.data.dataset import load_camera_animation
 from nerf_backend.data.run_folder import RunFolder
 from nerf_backend.evaluation.animation import render_animation
 from nerf_backend.evaluation.evaluate import evaluate_run
-
-from conftest import REPO_ROOT, run_python, camera_path_through_test_views
 
 CPU = torch.device("cpu")
 SCRIPT = REPO_ROOT / "tests" / "blender_scripts" / "animated_camera.py"

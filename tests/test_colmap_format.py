@@ -20,14 +20,14 @@ import numpy as np
 import pycolmap
 import pytest
 from PIL import Image
-
-from datasets_gen.colmap_export import write_colmap
-from datasets_gen.colmap_model import quaternion, sample_surface, world_to_camera
-from datasets_gen.options import DatasetGenError
-from datasets_gen.png_image import png_bytes, read_png
-from datasets_gen.surface_mesh import read_ply
-from datasets_gen.zbuffer import GRAZING_COS, PinholeCamera, depth_buffer, points_seen, project
 from test_datasets_gen import DEMO_ARGS, REPO, load_split, read_exr, require_blender, run_module
+
+from datasets_gen.core.options import DatasetGenError
+from datasets_gen.core.zbuffer import GRAZING_COS, PinholeCamera, depth_buffer, points_seen, project
+from datasets_gen.io.colmap_export import write_colmap
+from datasets_gen.io.colmap_model import quaternion, sample_surface, world_to_camera
+from datasets_gen.io.png_image import png_bytes, read_png
+from datasets_gen.io.surface_mesh import read_ply
 
 SCENE = REPO.parent / "shared" / "scenes" / "A.blend"
 # A non-square image, so that x and y conventions cannot be swapped unnoticed.

@@ -19,8 +19,8 @@ import OpenEXR
 import pytest
 from PIL import Image
 
-from datasets_gen import trajectories as tr
-from datasets_gen.intrinsics import camera_intrinsics
+from datasets_gen.core import trajectories as tr
+from datasets_gen.core.intrinsics import camera_intrinsics
 from nerf_backend.core.ply import read_ply
 
 REPO = Path(__file__).resolve().parents[1]

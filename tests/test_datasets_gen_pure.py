@@ -17,21 +17,20 @@ import OpenEXR
 import pytest
 from PIL import Image
 
-from datasets_gen import exr, generate_dataset
-from datasets_gen import trajectories as tr
+from datasets_gen import generate_dataset
 from datasets_gen.cli import build_parser, options_from_args
 from datasets_gen.cli import main as cli_main
-from datasets_gen.depth_normals import depth_channels, normal_channels
-from datasets_gen.frame_fit import (
+from datasets_gen.core import trajectories as tr
+from datasets_gen.core.frame_fit import (
     IDENTITY,
     bounding_sphere_radius,
     fit_similarity,
     fit_target_radius,
     view_half_angle,
 )
-from datasets_gen.intrinsics import CameraSettings, ray_length_factors
-from datasets_gen.materials import choose_output_node, classify_material
-from datasets_gen.options import (
+from datasets_gen.core.intrinsics import CameraSettings, ray_length_factors
+from datasets_gen.core.materials import choose_output_node, classify_material
+from datasets_gen.core.options import (
     DEFAULT_OPTIONS,
     SETTINGS,
     DatasetGenError,
@@ -41,16 +40,18 @@ from datasets_gen.options import (
     options_to_argv,
     parse_pixel_aspect,
 )
-from datasets_gen.output_dir import (
+from datasets_gen.core.scene_checks import MissingFile, SceneFacts, evaluate
+from datasets_gen.io import exr
+from datasets_gen.io.depth_normals import depth_channels, normal_channels
+from datasets_gen.io.output_dir import (
     check_output_dir,
     remove_stale_frames,
     remove_temporary_files,
     require_same_settings,
     settings_difference,
 )
-from datasets_gen.png_check import PngError, check_rgba8
-from datasets_gen.scene_checks import MissingFile, SceneFacts, evaluate
-from datasets_gen.shards import merge
+from datasets_gen.io.png_check import PngError, check_rgba8
+from datasets_gen.io.shards import merge
 
 CAMERAS = {
     "protocol": CameraSettings(),

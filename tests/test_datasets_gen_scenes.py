@@ -15,11 +15,11 @@ from typing import Callable
 
 import numpy as np
 import pytest
-from PIL import Image
-
-from datasets_gen.trajectories import RIG_RADIUS
 from conftest import run_python
+from PIL import Image
 from test_datasets_gen import SCRIPTS, load_split, read_exr, require_blender, run_module
+
+from datasets_gen.core.trajectories import RIG_RADIUS
 
 TINY = ["--resolution", "24", "--train-views", "3", "--val-views", "1", "--test-views", "2", "--samples", "4",
         "--no-progress"]

@@ -9,13 +9,19 @@ import pkgutil
 
 import pytest
 
+import datasets_gen.core
+import datasets_gen.io
 import nerf_backend
+import nerf_contract
 
-MODULES = sorted(info.name for info in pkgutil.walk_packages(nerf_backend.__path__, "nerf_backend.")
-                 if not info.name.endswith("__main__"))
-# datasets_gen's pure modules with examples (its others import bpy).
-MODULES += ["datasets_gen.camera_path", "datasets_gen.formats", "datasets_gen.png_image", "datasets_gen.zbuffer",
-            "datasets_gen.colmap_model", "datasets_gen.surface_mesh"]
+
+def _modules(package) -> list[str]:
+    return sorted(info.name for info in pkgutil.walk_packages(package.__path__, package.__name__ + ".")
+                  if not info.name.endswith("__main__"))
+
+
+# The backend, datasets_gen's plain side (its Blender side imports bpy), and the contract.
+MODULES = _modules(nerf_backend) + _modules(datasets_gen.core) + _modules(datasets_gen.io) + _modules(nerf_contract)
 # The add-on's plain modules with examples (no bpy).
 MODULES += ["addon.torch_builds", "addon.backend_setup"]
 

@@ -16,8 +16,8 @@ import torch
 from conftest import run_python
 from PIL import Image
 
-from datasets_gen import surface_mesh
-from datasets_gen.surface_mesh import ply_bytes, weld, write_ply_atomic
+from datasets_gen.io import surface_mesh
+from datasets_gen.io.surface_mesh import ply_bytes, weld, write_ply_atomic
 from nerf_backend.bench.tables import markdown_table
 from nerf_backend.core.errors import NerfError
 from nerf_backend.core.ply import read_ply

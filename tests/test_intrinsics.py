@@ -1,4 +1,4 @@
-"""Pixel intrinsics of a Blender camera (datasets_gen.intrinsics), against known values.
+"""Pixel intrinsics of a Blender camera (datasets_gen.core.intrinsics), against known values.
 
 The same formulas are checked against real Cycles renders in test_datasets_gen.py.
 """
@@ -9,7 +9,7 @@ import math
 
 import pytest
 
-from datasets_gen.intrinsics import camera_intrinsics, render_size
+from datasets_gen.core.intrinsics import camera_intrinsics, render_size
 
 
 def protocol_camera(**overrides):

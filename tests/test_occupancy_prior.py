@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from datasets_gen import voxelise as vx
-from datasets_gen.voxelise import Grid, Part, box_triangles, dilate, mark_boxes, mark_triangles, outside, voxelise
 from test_datasets_gen import REPO, SCRIPTS, load_split, require_blender, run_module
+
+from datasets_gen.core import voxelise as vx
+from datasets_gen.core.voxelise import Grid, Part, box_triangles, dilate, mark_boxes, mark_triangles, outside, voxelise
 
 TINY = ["--resolution", "24", "--train-views", "2", "--val-views", "1", "--test-views", "1", "--samples", "1",
         "--no-progress"]

@@ -21,16 +21,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import REPO_ROOT, run_python
 from PIL import Image
 
-from conftest import REPO_ROOT, run_python
-from datasets_gen.trajectories import hemisphere_poses, look_at, split_rng
+from datasets_gen.core.trajectories import hemisphere_poses, look_at, split_rng
 from nerf_backend.configs.presets import PRESETS
-from nerf_backend.data.dataset import load_split
 from nerf_backend.core.errors import NerfError
+from nerf_backend.data.dataset import load_split
+from nerf_backend.data.run_folder import RunFolder
 from nerf_backend.evaluation.evaluate import evaluate_run
 from nerf_backend.evaluation.inference import render_cameras
-from nerf_backend.data.run_folder import RunFolder
 from nerf_backend.training.trainer import TrainOptions, train
 
 CPU = torch.device("cpu")
@@ -137,7 +137,7 @@ def _wait_for_event(run: Path, kind: str, count: int, process: subprocess.Popen,
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         events = RunFolder(run).read_events()
-        if sum(e["event"] == kind for e in events) >= count:
+        if sum(e.KIND == kind for e in events) >= count:
             return
         if process.poll() is not None:
             raise AssertionError(f"training exited ({process.returncode}) before {count} {kind!r} events")
@@ -158,7 +158,7 @@ def test_kill_9_at_random_moments_then_resume_matches_the_uninterrupted_run(fast
         # a step, in validation, or in the middle of writing the next checkpoint.
         checkpoints += 1
         _wait_for_event(run, "checkpoint", checkpoints, process)
-        checkpoints = sum(e["event"] == "checkpoint" for e in RunFolder(run).read_events())
+        checkpoints = sum(e.KIND == "checkpoint" for e in RunFolder(run).read_events())
         time.sleep(moments.uniform(0.0, 2.0))
         if process.poll() is not None:
             break  # finished before this kill

@@ -1,4 +1,4 @@
-"""The protocol's camera rig as pure maths (datasets_gen.trajectories): no Blender needed."""
+"""The protocol's camera rig as pure maths (datasets_gen.core.trajectories): no Blender needed."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from datasets_gen import trajectories as tr
+from datasets_gen.core import trajectories as tr
 
 RADIUS = math.sqrt(16.25)
 BASE_ELEVATION = math.atan2(0.5, 4.0)  # 7.125 deg: the rig's elevation with no tilt

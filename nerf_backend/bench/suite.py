@@ -35,6 +35,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nerf_contract.dataset_layout import transforms_name
+from nerf_contract.training_events import Collapse
+
 from ..core.errors import NerfError
 from ..core.files import write_json
 from ..core.provenance import provenance
@@ -48,7 +51,7 @@ from .variants import Variant
 COLLAPSE_MARGIN_DB = 1.0
 SUITE_THRESHOLDS_DB = (25.0, 30.0)
 PLAN_NAME = "suite.json"
-DATASET_MARKER = "transforms_train.json"
+DATASET_MARKER = transforms_name("train")
 
 
 @dataclass(frozen=True)
@@ -98,8 +101,8 @@ def scene_blank_psnr(dataset: Path) -> dict:
 def collapse_events(run_dir: Path) -> list[dict]:
     """The trainer's ``collapse`` events in a run's ``events.jsonl`` (all segments of a bench)."""
     keys = ("iteration", "val_psnr", "blank_psnr", "margin_db", "action", "reason")
-    return [{key: event.get(key) for key in keys} for event in RunFolder(run_dir).read_events()
-            if event.get("event") == "collapse"]
+    return [{key: getattr(event, key) for key in keys} for event in RunFolder(run_dir).read_events()
+            if isinstance(event, Collapse)]
 
 
 def scene_summary(dataset: SuiteDataset, bench: dict, bench_dir: Path) -> dict:

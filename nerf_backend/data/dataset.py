@@ -22,6 +22,8 @@ import torch
 from PIL import Image, UnidentifiedImageError
 from torch import Tensor
 
+from nerf_contract.dataset_layout import PROFILE_NAME, transforms_name
+
 from ..core.cameras import Intrinsics
 from ..core.errors import DatasetError
 from ..core.scene_bounds import SceneBounds
@@ -284,7 +286,7 @@ def read_intrinsics(data: dict, path: Path, width: int, height: int) -> Intrinsi
 def _split_json(dataset_dir: Path, split: str) -> Path:
     if not split or any(c in split for c in "/\\\x00"):  # a name, not a path to another folder
         raise DatasetError(f"{dataset_dir}: {_show(split)} is not a split name (train, val, test...)")
-    return dataset_dir / f"transforms_{split}.json"
+    return dataset_dir / transforms_name(split)
 
 
 def load_split(dataset_dir: Path | str, split: str) -> DatasetSplit:
@@ -423,7 +425,7 @@ def load_camera_animation(json_path: Path | str) -> CameraAnimation:
 
 def load_scene_profile(dataset_dir: Path | str) -> dict | None:
     """``scene_profile.json`` as written by datasets_gen, or None for other tools' datasets."""
-    path = Path(dataset_dir) / "scene_profile.json"
+    path = Path(dataset_dir) / PROFILE_NAME
     return _read_json(path) if path.exists() else None
 
 
@@ -433,7 +435,7 @@ def load_scene_bounds(dataset_dir: Path | str) -> SceneBounds | None:
     profile = load_scene_profile(dataset_dir)
     if profile is None:
         return None
-    path = Path(dataset_dir) / "scene_profile.json"
+    path = Path(dataset_dir) / PROFILE_NAME
     bounds = profile.get("bounds")
     if not isinstance(bounds, dict):
         raise DatasetError(f"{path}: 'bounds' must be an object with 'min' and 'max', got {_show(bounds)}")

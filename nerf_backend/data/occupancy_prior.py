@@ -29,6 +29,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from nerf_contract.dataset_layout import PROFILE_NAME
+
 from ..core.errors import DatasetError
 
 PRIOR_KINDS = ("surface", "solid")
@@ -82,7 +84,7 @@ def load_occupancy_prior(dataset_dir: Path | str, kind: str) -> OccupancyPrior |
     none (datasets from other tools, or a Blender without numpy)."""
     if kind not in PRIOR_KINDS:
         raise ValueError(f"unknown occupancy prior {kind!r}; choose one of {', '.join(PRIOR_KINDS)}")
-    profile_path = Path(dataset_dir) / "scene_profile.json"
+    profile_path = Path(dataset_dir) / PROFILE_NAME
     if not profile_path.is_file():
         return None
     try:

@@ -1,26 +1,24 @@
 """A run folder: its config, its event log, its checkpoint and the lock that keeps two
 trainings out of the same folder.
 
-Layout::
-
-    RUN/config.json        dataset, seed, device, the full TrainConfig, decisions made
-    RUN/events.jsonl       one JSON object a line (start, train, val, checkpoint, done, error)
-    RUN/checkpoint.pt      the latest checkpoint, replaced atomically
-    RUN/preview.png        the latest validation render
-    RUN/renders/SPLIT/     rendered views; RUN/metrics.json from ``eval``
+The folder's names are the contract's (``nerf_contract.run_layout``, which the add-on reads
+too), and so are its events (``nerf_contract.training_events``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import os
 import pickle
 import time
 from pathlib import Path
-from typing import Any
 
 import torch
+
+from nerf_contract.run_layout import CHECKPOINT_NAME, CONFIG_NAME, EVENTS_NAME, RENDERS_DIR
+from nerf_contract.training_events import Event, TrainingEvent, read_events, to_line
 
 from ..core.errors import RunError
 from ..core.files import atomic_write, remove_stale_temporaries, write_json
@@ -30,9 +28,6 @@ def _first_line(error: Exception) -> str:
     return (str(error).strip().splitlines() or [type(error).__name__])[0]
 
 
-CONFIG_NAME = "config.json"
-EVENTS_NAME = "events.jsonl"
-CHECKPOINT_NAME = "checkpoint.pt"
 LOCK_NAME = ".lock"
 IN_USE = "another training is already using this run folder"
 
@@ -55,7 +50,7 @@ class RunFolder:
         return self.path / CHECKPOINT_NAME
 
     def renders_dir(self, split: str) -> Path:
-        return self.path / "renders" / split
+        return self.path / RENDERS_DIR / split
 
     def read_config(self) -> dict:
         if not self.config_path.is_file():
@@ -68,26 +63,19 @@ class RunFolder:
     def write_config(self, config: dict) -> None:
         write_json(self.config_path, config)
 
-    def log_event(self, event: str, **fields: Any) -> None:
-        """Append one event line; flushed at once so a reader (the add-on) sees it live."""
-        record = {"event": event, "time": time.time(), **fields}
+    def log(self, event: TrainingEvent) -> None:
+        """Append one event line, stamped with the time; flushed at once so a reader (the
+        add-on) sees it live."""
+        line = to_line(dataclasses.replace(event, time=time.time()))
         try:
             with open(self.events_path, "a", encoding="utf-8") as handle:
-                handle.write(json.dumps(record) + "\n")
+                handle.write(line + "\n")
                 handle.flush()
         except OSError as exc:
             raise RunError(f"{self.events_path}: cannot write ({exc.strerror or exc})") from exc
 
-    def read_events(self) -> list[dict]:
-        if not self.events_path.exists():
-            return []
-        events = []
-        for line in self.events_path.read_text(encoding="utf-8").splitlines():
-            try:
-                events.append(json.loads(line))
-            except json.JSONDecodeError:
-                continue  # a line cut by a kill mid-write: the rest of the log stands
-        return events
+    def read_events(self) -> list[Event]:
+        return read_events(self.events_path)
 
     def save_checkpoint(self, state: dict) -> None:
         # Serialised in memory first so that a write failure (a full disk) is the OS's

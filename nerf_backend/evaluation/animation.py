@@ -27,6 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nerf_contract.run_layout import ANIMATION_FRAMES_DIR, ANIMATION_RECORD
+
 from ..core.errors import NerfError
 from ..core.files import write_json, write_png
 from ..core.plotting import pyplot
@@ -40,7 +42,6 @@ from .evaluate import read_rgb
 from .inference import load_trained_model
 from .render_views import render_image
 
-RECORD_NAME = "animation.json"
 FRAME_METRICS = (METRICS_BY_KEY["psnr"], METRICS_BY_KEY["ssim"])  # LPIPS per 800×600 frame is too slow on a CPU
 
 
@@ -57,7 +58,7 @@ def _path_digest(animation: CameraAnimation) -> str:
 
 def _read_record(out_dir: Path) -> dict:
     try:
-        return json.loads((out_dir / RECORD_NAME).read_text())
+        return json.loads((out_dir / ANIMATION_RECORD).read_text())
     except (OSError, ValueError):
         return {}
 
@@ -76,7 +77,7 @@ def render_animation(run: RunFolder, path_json: Path, device: torch.device, out_
             raise NerfError(f"{absent[0]}: Cycles frame not found ({len(absent)} missing); rerun datasets_gen "
                             "--camera-path CAMERA --with-cycles to render them")
     out_dir = Path(out_dir) if out_dir is not None else default_out_dir(run, path_json)
-    frames_dir = out_dir / "frames"
+    frames_dir = out_dir / ANIMATION_FRAMES_DIR
     model, ray_bounds, state = load_trained_model(run, device)
     digest = _path_digest(animation)
     earlier = _read_record(out_dir)
@@ -91,7 +92,7 @@ def render_animation(run: RunFolder, path_json: Path, device: torch.device, out_
               "frames": [f.frame for f in animation.frames], "size": list(animation.size),
               "iteration": state["iteration"], "path_digest": digest, "device": str(device),
               "seconds_per_frame": earlier.get("seconds_per_frame") if current else None}
-    write_json(out_dir / RECORD_NAME, record)
+    write_json(out_dir / ANIMATION_RECORD, record)
     bar = Progress(len(todo), f"render {animation.camera}", unit="frame", enabled=progress)
     started = time.perf_counter()
     for frame in todo:
@@ -106,7 +107,7 @@ def render_animation(run: RunFolder, path_json: Path, device: torch.device, out_
                                       animation.fps))
     if cycles:
         record.update(_compare_with_cycles(animation, frames_dir, out_dir))
-    write_json(out_dir / RECORD_NAME, record)
+    write_json(out_dir / ANIMATION_RECORD, record)
     return record
 
 

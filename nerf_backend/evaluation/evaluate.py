@@ -20,6 +20,8 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
+from nerf_contract.run_layout import COMPARE_NAME, DIFFERENCE_NAME, METRICS_NAME, SIDE_BY_SIDE_NAME
+
 from ..core.errors import NerfError
 from ..core.files import read_exr, write_json, write_png
 from ..data.dataset import DatasetSplit, composite, load_split
@@ -105,7 +107,6 @@ def score_renders(split: DatasetSplit, renders_dir: Path, tools: MetricTools) ->
     }
 
 
-METRICS_NAME = "metrics.json"
 
 
 def metric_tools(weights: Path | None, linear: Path | None, device: torch.device) -> MetricTools:
@@ -163,16 +164,16 @@ def compare_images(reference: Path, render: Path, out_dir: Path, device: torch.d
         "metrics": [{**metric.describe(), "value": scores[metric.key], "text": metric.format(scores[metric.key])}
                     for metric in METRICS],
         "lpips_unavailable": None, **unavailable_reasons(tools),
-        "difference": str(out_dir / "difference.png"),
+        "difference": str(out_dir / DIFFERENCE_NAME),
         "difference_scale": f"mean |render - reference| per pixel, 0 to {ERROR_SCALE} (inferno)",
-        "side_by_side": str(out_dir / "side_by_side.png"),
+        "side_by_side": str(out_dir / SIDE_BY_SIDE_NAME),
     }
     heatmap = error_heatmap(a, b)
-    write_png(out_dir / "difference.png", heatmap)
+    write_png(out_dir / DIFFERENCE_NAME, heatmap)
     caption = summary_line(result, separator="   ")
-    write_png(out_dir / "side_by_side.png", side_by_side(
+    write_png(out_dir / SIDE_BY_SIDE_NAME, side_by_side(
         [(b, "Cycles (reference)"), (a, "NeRF"), (heatmap, f"|difference|, 0 to {ERROR_SCALE}")], caption))
-    write_json(out_dir / "compare.json", result)
+    write_json(out_dir / COMPARE_NAME, result)
     return result
 
 

@@ -20,15 +20,17 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
+from nerf_contract.run_layout import ANIMATION_RECORD, CONFIG_NAME, METRICS_NAME, REPORT_DIR, REPORT_INDEX
+from nerf_contract.training_events import Checkpoint, Collapse, Done, Event
+
 from ..core.devices import resolve_device
 from ..core.errors import NerfError
 from ..data.dataset import load_split
 from ..data.run_folder import RunFolder
 from ..metrics.registry import METRICS, Metric
 from .animation import FRAME_METRICS
-from .animation import RECORD_NAME as ANIMATION_RECORD
 from .error_images import error_heatmap
-from .evaluate import METRICS_NAME, evaluate_run, read_rgb
+from .evaluate import evaluate_run, read_rgb
 from .geometry_eval import GEOMETRY_NAME, GEOMETRY_PICTURE, GEOMETRY_SCORES
 from .inference import renders_are_current
 from .report_page import MARKER, ReportPage
@@ -47,7 +49,7 @@ class Result:
     renders_dir: Path
     dataset: Path
     run_config: dict | None  # config.json of a run; None for other tools' renders
-    events: list[dict]
+    events: list[Event]
 
     @property
     def by_view(self) -> dict[str, dict]:
@@ -58,7 +60,7 @@ def load_result(path: Path, split: str) -> Result:
     """A run folder (evaluated now if its metrics are missing or stale) or a folder with
     ``metrics.json`` written by ``eval --dataset D --renders DIR``."""
     path = Path(path)
-    if (path / "config.json").is_file():
+    if (path / CONFIG_NAME).is_file():
         run = RunFolder(path)
         metrics_path = path / METRICS_NAME
         metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else None
@@ -68,7 +70,7 @@ def load_result(path: Path, split: str) -> Result:
                       run.read_config(), run.read_events())
     metrics_path = path / METRICS_NAME
     if not metrics_path.is_file():
-        raise NerfError(f"{path}: neither a run folder (no config.json) nor scored renders (no {METRICS_NAME}); "
+        raise NerfError(f"{path}: neither a run folder (no {CONFIG_NAME}) nor scored renders (no {METRICS_NAME}); "
                         f"score renders first with: python -m nerf_backend eval --dataset DATASET --renders {path}")
     metrics = json.loads(metrics_path.read_text())
     for key in ("dataset", "renders", "per_view"):
@@ -131,10 +133,10 @@ def _headline(result: Result) -> str:
         cards.append(("depth MAE", f"{m['depth_mae']:.4f} {DEPTH_UNIT}"))
     config, events = result.run_config, result.events
     if config is not None:
-        done = [e for e in events if e.get("event") in ("done", "checkpoint")]
-        last = done[-1] if done else {}
-        cards += [("preset", config["preset"]), ("iterations", str(last.get("iteration", "—"))),
-                  ("training time", _fmt(last.get("elapsed_s"), ".1f") + " s"), ("device", config.get("device", "—"))]
+        last = _last_progress(events)
+        cards += [("preset", config["preset"]), ("iterations", str(last.iteration if last else "—")),
+                  ("training time", _fmt(last.elapsed_s if last else None, ".1f") + " s"),
+                  ("device", config.get("device", "—"))]
     out = ['<div class="headline">'] + [f'<div class="card">{html.escape(k)}<b>{html.escape(v)}</b></div>' for k, v in cards]
     out.append("</div>")
     out += _collapse_alerts(events)
@@ -157,14 +159,19 @@ def _headline(result: Result) -> str:
     return "\n".join(out)
 
 
-def _collapse_alerts(events: list[dict]) -> list[str]:
+def _last_progress(events: list[Event]) -> Done | Checkpoint | None:
+    """Where training stands: its last ``done`` or ``checkpoint`` event."""
+    done = [e for e in events if isinstance(e, (Done, Checkpoint))]
+    return done[-1] if done else None
+
+
+def _collapse_alerts(events: list[Event]) -> list[str]:
     """What the collapse guard found during training and what the trainer did about it."""
     alerts = []
-    for event in (e for e in events if e.get("event") == "collapse"):
-        verdict = "The run failed: " if event.get("final") else "The run collapsed and was restarted: "
+    for event in (e for e in events if isinstance(e, Collapse)):
+        verdict = "The run failed: " if event.final else "The run collapsed and was restarted: "
         alerts.append(f'<div class="alert"><b>{html.escape(verdict)}</b>'
-                      f'{html.escape(str(event.get("reason", "")))}. What the trainer did: '
-                      f'{html.escape(str(event.get("action", "")))}.</div>')
+                      f'{html.escape(event.reason)}. What the trainer did: {html.escape(event.action)}.</div>')
     return alerts
 
 
@@ -278,12 +285,12 @@ def _comparison(page: ReportPage, results: list[Result], split) -> str:
            f'<th class="num">training s</th>{_metric_headers()}'
            f'<th class="num" title="{DEPTH_UNIT_NOTE}">depth MAE ({DEPTH_UNIT})</th></tr>']
     for result in results:
-        done = [e for e in result.events if e.get("event") in ("done", "checkpoint")]
-        last = done[-1] if done else {}
+        last = _last_progress(result.events)
         preset = result.run_config["preset"] if result.run_config else "other tool"
         m = result.metrics
         out.append(f"<tr><td>{html.escape(result.label)}</td><td>{html.escape(preset)}</td>"
-                   f"<td class=num>{last.get('iteration', '—')}</td><td class=num>{_fmt(last.get('elapsed_s'), '.1f')}</td>"
+                   f"<td class=num>{last.iteration if last else '—'}</td>"
+                   f"<td class=num>{_fmt(last.elapsed_s if last else None, '.1f')}</td>"
                    f"{_metric_cells(m)}<td class=num>{_fmt(m.get('depth_mae'), '.4f')}</td></tr>")
     out.append("</table>")
     first = sorted(results[0].metrics["per_view"], key=lambda v: v["psnr"])
@@ -307,9 +314,9 @@ def _clear_previous_report(out_dir: Path) -> None:
     refused rather than emptied."""
     if not out_dir.exists() or not any(out_dir.iterdir()):
         return
-    index = out_dir / "index.html"
+    index = out_dir / REPORT_INDEX
     ours = index.is_file() and MARKER in index.read_text(encoding="utf-8", errors="replace")
-    if not ours or set(p.name for p in out_dir.iterdir()) - {"index.html", "images"}:
+    if not ours or set(p.name for p in out_dir.iterdir()) - {REPORT_INDEX, "images"}:
         raise NerfError(f"{out_dir}: folder exists and is not a report written by this tool; choose another --out")
     shutil.rmtree(out_dir)
 
@@ -326,7 +333,7 @@ def write_report(paths: list[Path], out_dir: Path | None = None, split: str = "t
     for k, result in enumerate(results):  # two folders with one name (run/, run/) stay apart
         if labels.count(result.label) > 1:
             result.label = f"{result.label} ({k + 1})"
-    out_dir = Path(out_dir) if out_dir is not None else results[0].path / "report"
+    out_dir = Path(out_dir) if out_dir is not None else results[0].path / REPORT_DIR
     _clear_previous_report(out_dir)
     (out_dir / "images").mkdir(parents=True)
     dataset_split = load_split(results[0].dataset, split)

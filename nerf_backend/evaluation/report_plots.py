@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nerf_contract.training_events import Collapse, Event, Train, Val
+
 from ..core.plotting import pyplot
 from .error_images import ERROR_COLOURMAP, ERROR_SCALE
 
@@ -25,10 +27,10 @@ def plot_error_scale(path: Path) -> None:
     plt.close(figure)
 
 
-def plot_training(events: list[dict], path: Path) -> bool:
+def plot_training(events: list[Event], path: Path) -> bool:
     """Loss and PSNR against iterations and against training seconds; False if no events."""
-    train = [e for e in events if e.get("event") == "train"]
-    val = [e for e in events if e.get("event") == "val"]
+    train = [e for e in events if isinstance(e, Train)]
+    val = [e for e in events if isinstance(e, Val)]
     if not train:
         return False
     plt = pyplot()
@@ -36,18 +38,18 @@ def plot_training(events: list[dict], path: Path) -> bool:
     figure, axes = plt.subplots(2, 2, figsize=(9, 6), dpi=100)
     for column, (key, label) in enumerate((("iteration", "iteration"), ("elapsed_s", "training time (s)"))):
         loss_axis, psnr_axis = axes[0, column], axes[1, column]
-        loss_axis.plot([e[key] for e in train], [e["loss"] for e in train], linewidth=0.8)
+        loss_axis.plot([getattr(e, key) for e in train], [e.loss for e in train], linewidth=0.8)
         loss_axis.set_yscale("log")
         loss_axis.set_ylabel("training loss (MSE)")
-        psnr_axis.plot([e[key] for e in train], [e["psnr"] for e in train], linewidth=0.8, label="training batch")
+        psnr_axis.plot([getattr(e, key) for e in train], [e.psnr for e in train], linewidth=0.8, label="training batch")
         if val:
-            psnr_axis.plot([e[key] for e in val], [e["psnr"] for e in val], marker="o", label="validation view")
-            blank = [e for e in val if e.get("blank_psnr") is not None and math.isfinite(e["blank_psnr"])]
+            psnr_axis.plot([getattr(e, key) for e in val], [e.psnr for e in val], marker="o", label="validation view")
+            blank = [e for e in val if e.blank_psnr is not None and math.isfinite(e.blank_psnr)]
             if blank:  # what an empty model scores on the same views: the collapse guard's floor
-                psnr_axis.plot([e[key] for e in blank], [e["blank_psnr"] for e in blank], linestyle="--",
+                psnr_axis.plot([getattr(e, key) for e in blank], [e.blank_psnr for e in blank], linestyle="--",
                                color="grey", linewidth=0.8, label="blank image, same view")
-        for event in (e for e in events if e.get("event") == "collapse" and key in e):
-            psnr_axis.axvline(event[key], color="#c0392b", linewidth=0.8)  # where the guard found a collapse
+        for event in (e for e in events if isinstance(e, Collapse)):
+            psnr_axis.axvline(getattr(event, key), color="#c0392b", linewidth=0.8)  # where the guard found a collapse
         psnr_axis.set_ylabel("PSNR (dB)")
         psnr_axis.legend(fontsize=8)
         for axis in (loss_axis, psnr_axis):

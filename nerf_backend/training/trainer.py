@@ -14,6 +14,10 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from nerf_contract import training_events as events
+from nerf_contract.dataset_layout import transforms_name
+from nerf_contract.run_layout import PREVIEW_NAME
+
 from ..configs.presets import DEFAULT_PRESET, preset_config
 from ..configs.train_config import SCHEDULES, TrainConfig, with_overrides
 from ..core.cameras import camera_rays, pixel_centres
@@ -140,7 +144,7 @@ def _prepare_run_folder(run: RunFolder, options: TrainOptions) -> None:
 
 
 def _load_val(dataset: Path) -> DatasetSplit | None:
-    return load_split(dataset, "val") if (dataset / "transforms_val.json").exists() else None
+    return load_split(dataset, "val") if (dataset / transforms_name("val")).exists() else None
 
 
 def sample_ray_batch(
@@ -331,10 +335,10 @@ class _Training:
     def run(self) -> TrainSummary:
         config, run, options = self.config, self.run_folder, self.options
         started_at = self.iteration
-        run.log_event("start", iteration=self.iteration, resumed=options.resume, preset=config.preset,
-                      device=str(self.device), cpu_threads=torch.get_num_threads(),
-                      target_iterations=config.iterations if self.plan.stop_at_iterations else None,
-                      max_seconds=self.plan.max_seconds, schedule_seconds=self.plan.schedule_seconds)
+        run.log(events.Start(iteration=self.iteration, resumed=options.resume, preset=config.preset,
+                             device=str(self.device), cpu_threads=torch.get_num_threads(),
+                             target_iterations=config.iterations if self.plan.stop_at_iterations else None,
+                             max_seconds=self.plan.max_seconds, schedule_seconds=self.plan.schedule_seconds))
         self.progress = _TrainingProgress(config.iterations, self.iteration, self.plan.max_seconds,
                                           self.train_seconds, enabled=options.progress,
                                           description=f"train {config.preset}")
@@ -344,8 +348,8 @@ class _Training:
             stop_reason = self._final_validation(stop_reason)
         self._checkpoint()
         val_psnr = self.score.psnr if self.score is not None else None
-        run.log_event("done", iteration=self.iteration, elapsed_s=self.train_seconds, reason=stop_reason,
-                      val_psnr=val_psnr)
+        run.log(events.Done(iteration=self.iteration, elapsed_s=self.train_seconds, reason=stop_reason,
+                            val_psnr=val_psnr))
         return TrainSummary(self.iteration, self.train_seconds, stop_reason, val_psnr, collapse=self.collapse,
                             started_at=started_at)
 
@@ -426,10 +430,10 @@ class _Training:
         if self.iteration % config.log_every == 0 or self.iteration == config.iterations:
             batch_psnr = mse_to_psnr(errors[-1].item())
             self.progress.show(loss=f"{loss.item():.4f}", psnr=f"{batch_psnr:.2f}")
-            self.run_folder.log_event("train", iteration=self.iteration, loss=loss.item(), psnr=batch_psnr,
-                                      lr=config.learning_rate_at(scheduled), scheduled=scheduled,
-                                      image_size=[images.intrinsics.width, images.intrinsics.height],
-                                      elapsed_s=self.train_seconds)
+            self.run_folder.log(events.Train(iteration=self.iteration, loss=loss.item(), psnr=batch_psnr,
+                                             lr=config.learning_rate_at(scheduled), scheduled=scheduled,
+                                             image_size=[images.intrinsics.width, images.intrinsics.height],
+                                             elapsed_s=self.train_seconds))
 
     def _images(self) -> ImageLevel:
         """The training images at the size the model's detail asks for now: downsampled
@@ -502,9 +506,10 @@ class _Training:
         return True
 
     def _report_collapse(self, verdict: Verdict, action: str, final: bool) -> None:
-        self.run_folder.log_event("collapse", iteration=verdict.iteration, elapsed_s=self.train_seconds,
-                                  val_psnr=verdict.psnr, blank_psnr=verdict.blank_psnr, margin_db=verdict.margin_db,
-                                  views=list(verdict.views), action=action, reason=verdict.describe(), final=final)
+        self.run_folder.log(events.Collapse(
+            iteration=verdict.iteration, elapsed_s=self.train_seconds, val_psnr=verdict.psnr,
+            blank_psnr=verdict.blank_psnr, margin_db=verdict.margin_db, views=list(verdict.views), action=action,
+            reason=verdict.describe(), final=final))
         self.progress.note(f"collapse: {verdict.describe()}; {action}")
 
     def _checkpoint(self) -> None:
@@ -519,8 +524,8 @@ class _Training:
             "sample_rng": self.sample_generator.get_state(), "config": self.config.to_dict(),
             "restart": self.restart, **({"grad_scaler": self.scaler.state_dict()} if self.scaler.is_enabled() else {}),
         })
-        self.run_folder.log_event("checkpoint", iteration=self.iteration, elapsed_s=self.train_seconds,
-                                  path=str(self.run_folder.checkpoint_path))
+        self.run_folder.log(events.Checkpoint(iteration=self.iteration, elapsed_s=self.train_seconds,
+                                              path=str(self.run_folder.checkpoint_path)))
 
     def _diverged(self, what: str) -> None:
         run = self.run_folder
@@ -528,7 +533,7 @@ class _Training:
                 else "no checkpoint had been written yet")
         message = (f"training diverged at iteration {self.iteration} ({what}); {kept}; "
                    f"try a lower learning_rate (--set learning_rate=...)")
-        run.log_event("error", iteration=self.iteration, message=message)
+        run.log(events.Error(iteration=self.iteration, message=message))
         raise NerfError(message)
 
 
@@ -571,7 +576,7 @@ def _validate(
     image = render_image(model, val_split.intrinsics, val_split.poses[view], ray_bounds)
     target = val_split.rgb_on_white(view).numpy()
     score = _ViewScore(iteration, psnr(image.rgb, target), blank_psnr(target))
-    write_png(run.path / "preview.png", image.rgb)
-    run.log_event("val", iteration=iteration, psnr=score.psnr, blank_psnr=score.blank_psnr, view=view,
-                  elapsed_s=train_seconds)
+    write_png(run.path / PREVIEW_NAME, image.rgb)
+    run.log(events.Val(iteration=iteration, psnr=score.psnr, blank_psnr=score.blank_psnr, view=view,
+                       elapsed_s=train_seconds))
     return score

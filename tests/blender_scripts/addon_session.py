@@ -44,7 +44,8 @@ repo = bpy.context.preferences.extensions.repos.new(name="test", module="test_re
 result = bpy.ops.extensions.package_install_files(filepath=str(ZIP), repo=repo.module, enable_on_install=True)
 module = f"bl_ext.{repo.module}.{PACKAGE_ID}"
 report["install"] = {"result": sorted(result), "enabled": module in bpy.context.preferences.addons,
-                     "classes": nerf_classes(), "installed_files": sorted(p.name for p in (WORK / "repo" / PACKAGE_ID).iterdir())}
+                     "classes": nerf_classes(), "installed_files": sorted(p.name for p in (WORK / "repo" / PACKAGE_ID).iterdir()),
+                     "datasets_gen": getattr(sys.modules.get("datasets_gen"), "__file__", None)}
 
 def _tooltips(rna) -> dict[str, str]:
     """Every user-facing property's tooltip, and each enum item's, as Blender shows them."""
@@ -57,6 +58,9 @@ def _tooltips(rna) -> dict[str, str]:
             tips.update({f"{prop.identifier}.{item.identifier}": item.description for item in prop.enum_items})
     return tips
 
+
+from nerf_contract import training_events  # noqa: E402  (from the extension's wheel, installed just now)
+from nerf_contract.run_layout import EVENTS_NAME  # noqa: E402
 
 addon = bpy.context.preferences.addons[module]
 report["tooltips"] = {**_tooltips(bpy.types.Scene.bl_rna.properties["nerf"].fixed_type.bl_rna),
@@ -105,8 +109,8 @@ while time.time() < deadline:
     time.sleep(again)
 report["train"]["final"] = {"state": state.state, "detail": state.detail, "error": state.error,
                             "preview_image": sys.modules[f"{module}.images"].PREVIEW_IMAGE in bpy.data.images,
-                            "cpu_threads": [e.get("cpu_threads") for e in sys.modules[f"{module}.jobs"].read_events(
-                                paths.run_dir(bpy.context)) if e.get("event") == "start"],
+                            "cpu_threads": [e.cpu_threads for e in training_events.read_events(
+                                paths.run_dir(bpy.context) / EVENTS_NAME) if isinstance(e, training_events.Start)],
                             "cpu_threads_asked": sys.modules[f"{module}.training_ops"].training_cpu_threads()}
 save()
 

@@ -17,7 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from .output_dir import GEOMETRY_NAME, write_file_atomic
+from nerf_contract.dataset_layout import GEOMETRY_NAME
+
+from .output_dir import write_file_atomic
 
 FRAME = "NeRF frame: p_nerf = scale * p_blender + translation (world_to_nerf)"
 

@@ -1,7 +1,7 @@
 """The scenes built in code, by name: the registry behind `--builtin NAME`, `--demo` and `--suite`.
 
 Pure (no bpy): the command line lists and checks the names without waiting for Blender; each
-scene's builder lives in a bpy module (`demo_scene`, `trap_scenes`) imported only to build it.
+scene's builder is Blender-side, in `datasets_gen.blender.builtin_scenes.BUILDERS` under the same name.
 
 `demo` and `demo_diffuse` are the demo scene and its all-diffuse variant (`--demo` and
 `--demo --demo-variant diffuse` are their shorthands).  The trap scenes each stand for a kind
@@ -17,27 +17,18 @@ demo as before (`{"source": "demo", "demo_variant": ...}`), the others as
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 from typing import Any, Optional
 
 
 @dataclass(frozen=True)
 class BuiltinScene:
-    """A scene built in code: its name, what it stands for, and how to build it."""
+    """A scene built in code: its name, what it stands for, and the frame it is rendered in."""
 
     name: str
     what: str  # the scene and the failure class it stands for (shown by --help, the suite, the README)
-    module: str  # the bpy module holding the builder, relative to this package
-    builder: str
     frame: str  # the default --frame: "blender" (modelled in the protocol frame) or "fit"
     demo_variant: Optional[str] = None  # for the demo scene: its variant
-
-    def build(self) -> Any:
-        """Create the scene in the current Blender session and return it (a bpy Scene)."""
-        module = importlib.import_module(f".{self.module}", __package__)
-        builder = getattr(module, self.builder)
-        return builder(variant=self.demo_variant) if self.demo_variant is not None else builder()
 
     def source_record(self) -> dict[str, Any]:
         """How a dataset records this scene as its source (`generator.settings.scene`)."""
@@ -48,20 +39,19 @@ class BuiltinScene:
 
 _SCENES = (
     BuiltinScene("demo", "the demo: pedestal, gold sphere, textured cube and cone, thin rod and ring",
-                 "demo_scene", "build_demo_scene", "blender", demo_variant="standard"),
+                 "blender", demo_variant="standard"),
     BuiltinScene("demo_diffuse", "the demo with every material a Diffuse BSDF (nothing view-dependent)",
-                 "demo_scene", "build_demo_scene", "blender", demo_variant="diffuse"),
+                 "blender", demo_variant="diffuse"),
     BuiltinScene("bright_object", "a large white sphere (about 60 % of every frame) with a thin dark groove, "
-                 "on the transparent film: a large white object", "trap_scenes", "build_bright_object", "fit"),
+                 "on the transparent film: a large white object", "fit"),
     BuiltinScene("thin_structure", "a wire lattice and a thin ring on a rod, 1-2 pixels wide at 100x100, and a "
-                 "small solid sphere: thin structures", "trap_scenes", "build_thin_structure", "fit"),
+                 "small solid sphere: thin structures", "fit"),
     BuiltinScene("off_centre", "most of the mass in one corner of the bounding box, a small cube in the "
-                 "opposite corner, the box centre empty: geometry far from its box's centre",
-                 "trap_scenes", "build_off_centre", "fit"),
+                 "opposite corner, the box centre empty: geometry far from its box's centre", "fit"),
     BuiltinScene("ground_plane", "a 12x12 ground plane with a few small objects on it: bounds set by "
-                 "a large flat surface", "trap_scenes", "build_ground_plane", "fit"),
+                 "a large flat surface", "fit"),
     BuiltinScene("glass_and_gloss", "glass (transmission 1, IOR 1.45) and polished metal on a small diffuse "
-                 "base: transparency and view dependence", "trap_scenes", "build_glass_and_gloss", "fit"),
+                 "base: transparency and view dependence", "fit"),
 )
 
 #: Every built-in scene by name.

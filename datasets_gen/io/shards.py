@@ -17,13 +17,12 @@ from __future__ import annotations
 import os
 from typing import Any
 
+from nerf_contract.dataset_layout import GEOMETRY_NAME, PRIOR_NAME, PROFILE_NAME, SPLITS
+
+from ..core.options import DatasetGenError, Shard
 from .dataset_json import frame_index
 from .formats import write_formats
-from .options import SPLITS, DatasetGenError, Shard
 from .output_dir import (
-    GEOMETRY_NAME,
-    PRIOR_NAME,
-    PROFILE_NAME,
     read_json,
     remove_stale_frames,
     settings_difference,

@@ -23,7 +23,6 @@ from .frame_fit import view_half_angle
 from .intrinsics import SENSOR_FITS, CameraSettings
 
 DEVICES = ("CPU", "GPU", "CUDA", "OPTIX", "HIP", "METAL", "ONEAPI")
-SPLITS = ("train", "val", "test")
 FRAMES = ("fit", "blender")
 DEPTH_NORMALS = ("none", "test", "all")
 DEMO_VARIANTS = ("standard", "diffuse")

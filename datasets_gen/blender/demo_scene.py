@@ -29,7 +29,7 @@ import bmesh
 import bpy
 from mathutils import Euler
 
-from .blender_compat import diffuse_bsdf, node_tree_of, principled_bsdf, set_node_input
+from .compat import diffuse_bsdf, node_tree_of, principled_bsdf, set_node_input
 
 DEMO_SCENE_NAME = "NeRF demo"
 PEDESTAL_TOP_Z = -0.5

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping, Optional, Sequence
 
-from .intrinsics import Intrinsics
+from ..core.intrinsics import Intrinsics
 
 SCENE_PROFILE_VERSION = 2
 

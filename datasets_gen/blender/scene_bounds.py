@@ -20,8 +20,8 @@ from typing import Iterator, Optional
 import bpy
 from mathutils import Vector
 
-from .frame_fit import bounding_sphere_radius
-from .materials import NO_MATERIAL
+from ..core.frame_fit import bounding_sphere_radius
+from ..core.materials import NO_MATERIAL
 from .scene_state import SettingsJournal
 
 #: Object types whose evaluated geometry can be turned into a mesh and appears in renders.

@@ -18,12 +18,12 @@ from typing import Any, Iterator, Optional, Sequence
 import bpy
 from mathutils import Matrix
 
-from . import exr
-from .depth_normals import write_depth_normals
-from .frame_fit import Similarity
-from .intrinsics import CameraSettings
-from .options import DatasetGenError
-from .output_dir import temporary_path
+from ..core.frame_fit import Similarity
+from ..core.intrinsics import CameraSettings
+from ..core.options import DatasetGenError
+from ..io import exr
+from ..io.depth_normals import write_depth_normals
+from ..io.output_dir import temporary_path
 from .scene_state import SettingsJournal, remove_datablock
 
 CAMERA_NAME = "NeRF dataset camera"

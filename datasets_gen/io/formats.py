@@ -29,10 +29,10 @@ import os
 import shutil
 from typing import Any, Mapping
 
+from nerf_contract.dataset_layout import COLMAP_DIR, NGP_NAME, POINTS_NAME
+
 from .output_dir import write_json_atomic
 
-NGP_NAME = "transforms.json"
-POINTS_NAME = "points3d.ply"  # colmap_export's point cloud (kept here: this module must not need numpy)
 #: Instant-NGP maps the NeRF frame into its unit cube by p * 0.33 + 0.5 (its defaults, which
 #: nerf_synthetic scenes use); aabb_scale is the side of the cube rays march in, a power of 2.
 NGP_SCALE = 0.33
@@ -76,7 +76,6 @@ def ngp_document(documents: Mapping[str, dict], profile: Mapping[str, Any]) -> d
 
 
 #: What each layout writes into the dataset's folder.
-COLMAP_DIR = "colmap"
 OUTPUTS = {"colmap": (COLMAP_DIR, POINTS_NAME), "ngp": (NGP_NAME,)}
 
 

@@ -8,10 +8,10 @@ from typing import Any, Iterable
 
 import bpy
 
-from .blender_render import camera_settings, configure_render, render_view
-from .camera_path import FrameCamera, frame_stem
-from .options import DatasetGenError
-from .progress import ViewProgress
+from ..core.camera_path import FrameCamera, frame_stem
+from ..core.options import DatasetGenError
+from ..core.progress import ViewProgress
+from .render import camera_settings, configure_render, render_view
 from .scene_state import SettingsJournal
 
 FLAG = "--camera-path"

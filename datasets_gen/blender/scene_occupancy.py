@@ -21,10 +21,11 @@ import bpy
 import numpy as np
 from mathutils import Vector
 
-from .frame_fit import Similarity
-from .output_dir import PRIOR_NAME
+from nerf_contract.dataset_layout import PRIOR_NAME
+
+from ..core.frame_fit import Similarity
+from ..core.voxelise import BASE_MARGIN_CELLS, DEFAULT_RESOLUTION, RULE, Occupancy, Part, margin_in_cells, voxelise
 from .scene_bounds import MESHABLE_TYPES, SURFACE_OBJECT_TYPES, _camera_invisible_objects, _instances
-from .voxelise import BASE_MARGIN_CELLS, DEFAULT_RESOLUTION, RULE, Occupancy, Part, margin_in_cells, voxelise
 
 MOTION_REASON = "motion: none, rendered with motion blur off"
 BASE_REASON = (f"{BASE_MARGIN_CELLS} cell everywhere: the backend's grid is coarser than this one "

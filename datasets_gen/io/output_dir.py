@@ -19,12 +19,12 @@ import os
 import re
 from typing import Any, BinaryIO, Callable, Iterable, Optional
 
-from .options import SPLITS, DatasetGenError, GeneratorOptions, Shard
+from nerf_contract import dataset_layout
+from nerf_contract.dataset_layout import PROFILE_NAME, SPLITS
 
-PROFILE_NAME = "scene_profile.json"
-PRIOR_NAME = "occupancy_prior.npz"  # voxelised geometry, named in the profile (scene_occupancy)
-GEOMETRY_NAME = "scene_geometry.ply"  # the renderable triangles, named in the profile (surface_mesh)
-DATASET_JSON_NAMES = tuple(f"transforms_{split}.json" for split in SPLITS) + (PROFILE_NAME,)
+from ..core.options import DatasetGenError, GeneratorOptions, Shard
+
+DATASET_JSON_NAMES = tuple(dataset_layout.transforms_name(split) for split in SPLITS) + (PROFILE_NAME,)
 PROGRESS_PREFIX = ".datasets_gen_progress"
 _VIEW_FILE = re.compile(r"r_(\d+)(\.png|_depth\.exr|_normal\.exr)")
 _TEMPORARY = re.compile(r"\.r_(\d+)[._].*\.\d+\.tmp")
@@ -39,17 +39,13 @@ def progress_name(shard: Optional[Shard]) -> str:
 
 def transforms_name(split: str, shard: Optional[Shard] = None) -> str:
     """transforms_{split}.json, or transforms_{split}.shard-K-of-N.json for a shard."""
-    return f"transforms_{split}.{shard.label}.json" if shard else f"transforms_{split}.json"
+    return f"transforms_{split}.{shard.label}.json" if shard else dataset_layout.transforms_name(split)
 
 
 def view_paths(out_dir: str, split: str, index: int) -> dict[str, str]:
     """Absolute paths of a view's files: "png", "depth", "normal"."""
     folder = os.path.join(out_dir, split)
-    return {
-        "png": os.path.join(folder, f"r_{index}.png"),
-        "depth": os.path.join(folder, f"r_{index}_depth.exr"),
-        "normal": os.path.join(folder, f"r_{index}_normal.exr"),
-    }
+    return {kind: os.path.join(folder, name) for kind, name in dataset_layout.view_names(index).items()}
 
 
 def read_json(path: str) -> Optional[dict]:

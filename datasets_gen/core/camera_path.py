@@ -1,7 +1,7 @@
 """A Blender camera's animation as a NeRF camera path: per frame, the camera-to-world matrix in
 a dataset's NeRF frame and the exact pixel intrinsics of that frame (lens, sensor and shift
 may be animated). Pure maths and JSON, no bpy: the add-on and `datasets_gen --camera-path`
-read the frames from Blender (blender_camera_path.py) and write this document;
+read the frames from Blender (blender/camera_animation.py) and write this document;
 `python -m nerf_backend render RUN --camera-path FILE` renders it.
 
 Example:
@@ -22,12 +22,12 @@ import re
 from dataclasses import dataclass
 from typing import Any, Mapping, Optional, Sequence
 
+from nerf_contract.dataset_layout import CYCLES_FRAMES_DIR
+
 from .intrinsics import CameraSettings
 from .options import DatasetGenError
 
 #: The document's name inside its folder, and the Cycles frames' folder beside it.
-PATH_FILE = "camera_path.json"
-CYCLES_DIR = "cycles"
 FORMAT = "nerf-from-blender camera path 1"
 
 
@@ -63,12 +63,6 @@ def frame_stem(frame: int) -> str:
     return f"{frame:04d}"
 
 
-def safe_name(name: str) -> str:
-    """A camera's name as a folder name: letters, digits, ``-``, ``_`` and ``.`` kept."""
-    cleaned = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._")
-    return cleaned or "camera"
-
-
 def camera_to_nerf(matrix_world: Sequence[Sequence[float]], world_to_nerf: Mapping[str, Any]) -> list[list[float]]:
     """4×4 camera-to-world in the NeRF frame from Blender's ``matrix_world``.
 
@@ -96,7 +90,7 @@ def frame_entry(frame: FrameCamera, world_to_nerf: Mapping[str, Any], cycles: bo
                              "lens_mm": frame.camera.lens_mm,
                              "transform_matrix": camera_to_nerf(frame.matrix_world, world_to_nerf)}
     if cycles:
-        entry["cycles_file_path"] = f"{CYCLES_DIR}/{frame_stem(frame.frame)}.png"
+        entry["cycles_file_path"] = f"{CYCLES_FRAMES_DIR}/{frame_stem(frame.frame)}.png"
     return entry
 
 

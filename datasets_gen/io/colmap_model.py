@@ -29,7 +29,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .zbuffer import PinholeCamera, points_seen
+from ..core.zbuffer import PinholeCamera, points_seen
 
 #: COLMAP's model id of PINHOLE (cameras.bin) and its parameters' order.
 PINHOLE_ID = 1

@@ -31,6 +31,11 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from nerf_contract.dataset_layout import COLMAP_DIR, GEOMETRY_NAME, POINTS_NAME
+
+from ..core.options import DatasetGenError
+from ..core.progress import ViewProgress
+from ..core.zbuffer import PinholeCamera, depth_buffer
 from .colmap_model import (
     TrackBuilder,
     cameras_binary,
@@ -43,13 +48,9 @@ from .colmap_model import (
     sample_surface,
     world_to_camera,
 )
-from .formats import COLMAP_DIR, POINTS_NAME
-from .options import DatasetGenError
-from .output_dir import GEOMETRY_NAME, write_file_atomic
+from .output_dir import write_file_atomic
 from .png_image import png_bytes, read_png
-from .progress import ViewProgress
 from .surface_mesh import FRAME, read_ply
-from .zbuffer import PinholeCamera, depth_buffer
 
 #: Surface points drawn (uniform by area); those no training view sees are dropped.
 POINT_SAMPLES = 20_000

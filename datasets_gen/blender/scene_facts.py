@@ -13,8 +13,8 @@ from typing import Any, Iterable, Optional
 
 import bpy
 
-from .materials import choose_output_node
-from .scene_checks import MissingFile
+from ..core.materials import choose_output_node
+from ..core.scene_checks import MissingFile
 
 FILE_IMAGE_SOURCES = {"FILE", "SEQUENCE", "MOVIE", "TILED"}
 _SCALAR_SOCKETS = {"VALUE", "INT", "BOOLEAN"}

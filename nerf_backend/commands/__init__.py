@@ -1,0 +1,8 @@
+"""The backend's commands, one module each (as nerfstudio's scripts are): each holds its
+``NAME``, its ``HELP``, ``add_arguments(parser)`` and ``run(args) -> int`` (the exit status).
+``cli.py`` builds the command line from ``COMMANDS``, in this order, and runs the one chosen.
+The flags the add-on passes are named in ``nerf_contract.commands``."""
+
+from . import bench, bench_step, compare, evaluate, mesh, render, report, train
+
+COMMANDS = (train, bench, bench_step, render, evaluate, compare, mesh, report)

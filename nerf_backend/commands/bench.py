@@ -1,0 +1,72 @@
+"""``bench DATASET | --suite PATH... --out BENCH``: the speed/accuracy trade of presets, on one
+dataset or on every dataset of a suite."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from nerf_contract.commands import BackendFlag
+
+from ..bench import DEFAULT_PRESETS, Variant, ablation_variants, run_bench, run_suite
+from ..core.errors import NerfError
+from .arguments import add_device, add_seed, positive_float, positive_int
+
+NAME = "bench"
+HELP = "measure the speed/accuracy trade of presets on one dataset, or on every dataset of a suite (--suite)"
+
+
+def curve_points(text: str) -> int | tuple[float, ...]:
+    """``--points``: a count, or the budgets themselves (``60,120,300``)."""
+    if "," not in text:
+        return positive_int(text)
+    return tuple(positive_float(part) for part in text.split(",") if part.strip())
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dataset", type=Path, nargs="?", help="the dataset (or give --suite)")
+    parser.add_argument("--suite", type=Path, nargs="+", default=None, metavar="PATH",
+                        help="bench every dataset of these folders (each subfolder with a transforms_train.json; a "
+                             "dataset folder counts as itself) into OUT/NAME, and write OUT/summary.{json,md,png}; "
+                             "finished scenes are kept, unfinished ones benched again")
+    parser.add_argument("--presets", default=None,
+                        help="comma-separated presets or variants NAME=PRESET+KEY=VALUE+... "
+                             "(default: preview,fast,auto,paper)")
+    parser.add_argument("--ablations", nargs="?", const="paper", default=None, metavar="PRESET",
+                        help="add the NeRF paper's ablations of a NeRF preset (default: paper): no PE, no view "
+                             "dependence, no hierarchical sampling, 50 and 25 views, L = 5 and 15; and check their "
+                             "order against the paper's")
+    parser.add_argument("--budget-seconds", type=positive_float, default=None, help="training seconds per variant")
+    parser.add_argument(BackendFlag.ITERATIONS, type=positive_int, default=None, help="or: iterations per variant")
+    parser.add_argument("--points", type=curve_points, default=6,
+                        help="evaluations along each curve: a count, spaced quadratically, or the budgets themselves "
+                             "(seconds or iterations, comma-separated: 60,120,300,600); the last is always the whole "
+                             "budget")
+    parser.add_argument("--curve-views", type=positive_int, default=8, help="test views scored at each point")
+    add_seed(parser)
+    add_device(parser)
+    parser.add_argument(BackendFlag.OUT, type=Path, required=True,
+                        help="the bench folder (bench.json, bench.md, bench.png, runs/)")
+    parser.add_argument(BackendFlag.OVERWRITE, action="store_true", help="bench again into an existing folder")
+
+
+def run(args: argparse.Namespace) -> int:
+    names = (args.presets or ("" if args.ablations else DEFAULT_PRESETS)).split(",")
+    names = [n for n in names if n] + (ablation_variants(args.ablations) if args.ablations else [])
+    if (args.dataset is None) == (args.suite is None):
+        raise NerfError("bench: give a DATASET or --suite PATH ... (not both)")
+    variants = [Variant.parse(n) for n in names]
+    if args.suite is not None:
+        run_suite(args.suite, variants, args.out, args.budget_seconds, args.iters, points=args.points,
+                  curve_views=args.curve_views, seed=args.seed, device=args.device, overwrite=args.overwrite,
+                  command=args.command_line)
+        print((args.out / "summary.md").read_text(), end="")
+        print(f"written {args.out / 'summary.json'}, {args.out / 'summary.md'}, {args.out / 'summary.png'} "
+              f"and each scene's bench in {args.out}/NAME")
+        return 0
+    run_bench(args.dataset, variants, args.out, args.budget_seconds, args.iters, points=args.points,
+              curve_views=args.curve_views, seed=args.seed, device=args.device, overwrite=args.overwrite,
+              command=args.command_line)
+    print((args.out / "bench.md").read_text(), end="")
+    print(f"written {args.out / 'bench.json'}, {args.out / 'bench.md'}, {args.out / 'bench.png'}")
+    return 0

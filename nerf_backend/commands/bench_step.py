@@ -1,0 +1,62 @@
+"""``bench-step DATASET --out DIR``: a NeRF preset's seconds per iteration against a plain
+PyTorch implementation of the same maths; a marched preset's training step and rendered view
+split by stage, against this machine's limits."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from nerf_contract.commands import BackendFlag
+
+from ..bench import profile_marched_step, step_cost
+from ..configs.presets import preset_config
+from ..core.errors import NerfError
+from ..models.marched import MarchedModel
+from ..models.registry import model_class
+from .arguments import add_device, add_seed, positive_float, positive_int
+
+NAME = "bench-step"
+HELP = ("a NeRF preset's seconds per iteration against a plain PyTorch implementation of the same maths; a "
+        "marched preset's training step and rendered view split by stage, against this machine's limits")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dataset", type=Path, help="the dataset folder")
+    parser.add_argument(BackendFlag.PRESET, default="paper", help="the preset to time")
+    parser.add_argument("--steps", type=positive_int, default=None,
+                        help="timed iterations (default: 3 for NeRF presets, 50 for marched ones)")
+    parser.add_argument("--rays", type=positive_int, default=None, help="rays per batch (default: the preset's)")
+    parser.add_argument("--warmup-seconds", type=positive_float, default=60.0,
+                        help="marched presets: training before the timed steps, the whole schedule laid over it")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="marched presets: change a setting of the preset")
+    add_device(parser)
+    add_seed(parser)
+    parser.add_argument(BackendFlag.OUT, type=Path, required=True, help="folder for the timings (JSON and Markdown)")
+    parser.add_argument(BackendFlag.OVERWRITE, action="store_true", help="replace an existing output folder")
+
+
+def run(args: argparse.Namespace) -> int:
+    if issubclass(model_class(preset_config(args.preset).model), MarchedModel):
+        return _profile_marched(args)
+    if args.overrides:
+        raise NerfError("bench-step: --set applies to marched presets; a NeRF preset is measured as it is")
+    report = step_cost(args.dataset, args.preset, args.steps or 3, args.out, seed=args.seed, rays=args.rays,
+                       overwrite=args.overwrite)
+    per = report["seconds_per_iteration"]
+    print(f"{args.preset}, {report['rays_per_batch']} rays: this project {per['project']:.2f} s/iteration, "
+          f"plain PyTorch {per['plain']:.2f} s/iteration (ratio {report['ratio_project_to_plain']:.2f}; "
+          f"{report['parameters']['project']:,} vs {report['parameters']['plain']:,} parameters); "
+          f"written {args.out / 'step_cost.json'}")
+    return 0
+
+
+def _profile_marched(args: argparse.Namespace) -> int:
+    overrides = tuple(args.overrides) + ((f"rays_per_batch={args.rays}",) if args.rays else ())
+    profile_marched_step(args.dataset, args.preset, args.steps or 50, args.out, seed=args.seed,
+                         warmup_seconds=args.warmup_seconds, overrides=overrides, device_name=args.device,
+                         overwrite=args.overwrite)
+    print((args.out / "step_profile.md").read_text(), end="")
+    print(f"written {args.out / 'step_profile.json'}, {args.out / 'step_profile.md'}")
+    return 0

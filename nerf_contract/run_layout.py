@@ -1,0 +1,29 @@
+"""A run's folder, as the backend writes it and the add-on reads it::
+
+    RUN/config.json          dataset, seed, device, the full training config, decisions made
+    RUN/events.jsonl         the training events, one JSON object a line (training_events)
+    RUN/checkpoint.pt        the latest checkpoint, replaced atomically
+    RUN/preview.png          the latest validation render
+    RUN/renders/SPLIT/       rendered views; RUN/metrics.json from ``eval``
+    RUN/report/index.html    the comparison page (``report``)
+
+and what ``compare`` and ``render --camera-path`` write into their ``--out`` folder::
+
+    OUT/compare.json, OUT/difference.png, OUT/side_by_side.png
+    OUT/animation.json, OUT/frames/
+"""
+
+CONFIG_NAME = "config.json"
+EVENTS_NAME = "events.jsonl"
+CHECKPOINT_NAME = "checkpoint.pt"
+PREVIEW_NAME = "preview.png"
+RENDERS_DIR = "renders"
+METRICS_NAME = "metrics.json"
+REPORT_DIR = "report"
+REPORT_INDEX = "index.html"
+
+COMPARE_NAME = "compare.json"
+DIFFERENCE_NAME = "difference.png"
+SIDE_BY_SIDE_NAME = "side_by_side.png"
+ANIMATION_RECORD = "animation.json"
+ANIMATION_FRAMES_DIR = "frames"
