@@ -6,6 +6,8 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
+from datasets_gen.core.options import EXTRA_FORMATS
+
 from . import sources
 from .paths import backend_python, torch_build
 from .torch_builds import CUDA_BUILDS, ROCM_BUILD
@@ -38,10 +40,7 @@ class NerfSettings(bpy.types.PropertyGroup):
     dataset_formats: EnumProperty(
         name="Also Write", options={"ENUM_FLAG"}, default=set(),
         description="Layouts written beside nerf_synthetic's, from the same render",
-        items=(("colmap", "COLMAP", "A COLMAP model of the training views (cameras, poses, images, masks) with the "
-                                    "scene's surface points, and points3d.ply, as 3DGS, gsplat and nerfstudio read them"),
-               ("ngp", "NGP", "Instant-NGP's layout: one transforms.json of every split, as Instant-NGP and "
-                              "nerfstudio read it")))
+        items=tuple((name, label, text) for name, (label, text) in EXTRA_FORMATS.items()))
     # Training
     run_dir: StringProperty(name="Folder", subtype="DIR_PATH", default="//nerf_run",
                              description="Where training writes its checkpoint, events and renders")

@@ -55,9 +55,15 @@ def test_a_time_budget_lays_the_whole_schedule_over_itself(tiny_demo_dataset, tm
     assert steps < fast.iterations  # the budget ended it, not the step count
     scheduled = [e["scheduled"] for e in trains]
     assert scheduled == sorted(scheduled) and all(s > e["iteration"] for s, e in zip(scheduled, trains))
-    # The last step's rate (the optimiser's, as checkpointed) is within the last 10 % of the
-    # schedule: 0.02 · 0.1^0.9 ≈ 1.26 × the final 0.002.
-    assert checkpoint["optimizer"]["param_groups"][0]["lr"] <= 1.3 * fast.final_learning_rate
+    # The last step began at most one step before the budget's end, so its rate (the
+    # optimiser's, as checkpointed) is the schedule's that near its end. One step's length is
+    # bounded by the longest gap between the logged steps (10 steps apart): on a quiet machine
+    # a few hundredths of the budget, more when the machine is loaded (the bound follows).
+    elapsed = [e["elapsed_s"] for e in trains]
+    longest = max(later - earlier for earlier, later in zip(elapsed, elapsed[1:]))
+    reached = int(fast.iterations * (1.0 - longest / BUDGET_S))
+    assert reached > fast.iterations // 2, f"steps of {longest:.2f} s: too few for the test to say anything"
+    assert checkpoint["optimizer"]["param_groups"][0]["lr"] <= fast.learning_rate_at(reached) * (1 + 1e-6)
     planes = checkpoint["model"]["field.density_grid.planes.0"]
     assert max(planes.shape[-2:]) == fast.grid.resolution  # grown to the end of its schedule
 

@@ -11,7 +11,7 @@ import torch
 from nerf_backend.configs.presets import PRESETS
 from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.field_components.grid_encodings import VectorMatrixGrid
-from nerf_backend.models.marched import GridModel
+from nerf_backend.models.registry import GridModel
 from nerf_backend.models.nerf import NerfModel
 from nerf_backend.model_components.marcher import SKIPPED_WEIGHT
 from nerf_backend.model_components.occupancy import OccupancyGrid
@@ -279,7 +279,7 @@ def test_a_young_faint_field_still_renders_its_denser_part():
 
 
 def test_a_hash_field_renders_with_the_training_grid_until_it_has_an_estimate():
-    from nerf_backend.models.marched import HashModel
+    from nerf_backend.models.registry import HashModel
 
     model = HashModel(PRESETS["hash"], BOX)
     assert model.field.cell_max_density() is None

@@ -19,7 +19,7 @@ from nerf_backend.data.dataset import load_split
 from nerf_backend.field_components.hash_encoding import HashEncoding, level_resolutions
 from nerf_backend.fields.hash_field import HashField, HashFieldConfig
 from nerf_backend.metrics.image_metrics import psnr
-from nerf_backend.models.marched import HashModel
+from nerf_backend.models.registry import HashModel
 from nerf_backend.models.registry import build_model
 
 BOX = SceneBounds((-1.0, -1.5, -0.5), (1.0, 1.5, 0.5))

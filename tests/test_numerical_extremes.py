@@ -15,7 +15,7 @@ from nerf_backend.core.cameras import Intrinsics, camera_rays, pixel_centres, ra
 from nerf_backend.configs.presets import PRESETS
 from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.fields.mlp_field import FieldConfig, NerfField
-from nerf_backend.models.marched import GridModel
+from nerf_backend.models.registry import GridModel
 from nerf_backend.model_components.samplers import SamplingConfig
 from nerf_backend.models.nerf import render_rays
 from nerf_backend.model_components.samplers import sample_pdf, stratified_edges

@@ -13,7 +13,7 @@ import torch
 from nerf_backend.configs.presets import PRESETS
 from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.core.errors import DatasetError
-from nerf_backend.models.marched import GridModel
+from nerf_backend.models.registry import GridModel
 from nerf_backend.data.occupancy_prior import OccupancyPrior, load_occupancy_prior
 
 

@@ -27,9 +27,16 @@ FRAMES = ("fit", "blender")
 DEPTH_NORMALS = ("none", "test", "all")
 DEMO_VARIANTS = ("standard", "diffuse")
 COLOR_MANAGEMENT = ("standard", "scene")
+#: The layouts --format adds beside nerf_synthetic's, from the same render, with the label and
+#: description the add-on's checkboxes show (io/formats.py writes them).
+EXTRA_FORMATS: dict[str, tuple[str, str]] = {
+    "colmap": ("COLMAP", "A COLMAP model of the training views (cameras, poses, images, masks) with the scene's "
+                         "surface points, and points3d.ply, as 3DGS, gsplat and nerfstudio read them"),
+    "ngp": ("NGP", "Instant-NGP's layout: one transforms.json of every split, as Instant-NGP and nerfstudio read it"),
+}
 #: Dataset layouts: nerf_synthetic's transforms_{split}.json are always written (the dataset's
-#: own record); --format adds the others beside them, from the same render.
-FORMATS = ("nerf_synthetic", "colmap", "ngp")
+#: own record); --format adds the others.
+FORMATS = ("nerf_synthetic", *EXTRA_FORMATS)
 
 
 class DatasetGenError(Exception):

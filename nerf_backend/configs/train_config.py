@@ -1,18 +1,20 @@
 """Everything that decides how a run trains, in one frozen dataclass; a run's ``config.json``
-records it with every value, so a run can be reproduced. The presets are in presets.json."""
+records it with every value, so a run can be reproduced. The presets are in presets.json.
+
+The models' own settings are not listed here: each model names its groups (``Model.SETTINGS``),
+and the config holds one of every registered model's groups, read as attributes
+(``config.grid.resolution``) and written as top-level groups of ``config.json`` and
+presets.json (``"grid": {"resolution": 128}``, ``--set grid.resolution=96``)."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
 from dataclasses import dataclass
+from typing import Any
 
 from ..core.errors import NerfError
-from ..fields.grid_field import GridFieldConfig
-from ..fields.hash_field import HashFieldConfig
-from ..fields.mlp_field import FieldConfig
-from ..model_components.samplers import SamplingConfig
-
+from ..models.registry import settings_groups
 
 # How a run under a time budget counts its schedule (TrainConfig.schedule).
 SCHEDULES = ("budget", "iterations")
@@ -26,10 +28,9 @@ class TrainConfig:
     # A name in models.registry.MODELS: "nerf" (the paper's MLP fields, coarse-to-fine),
     # "grid" (factorised grids marched with an occupancy grid), "hash" (Instant-NGP's hash grid, marched).
     model: str = "nerf"
-    field: FieldConfig = dataclasses.field(default_factory=FieldConfig)  # the "nerf" model's MLPs
-    sampling: SamplingConfig = dataclasses.field(default_factory=SamplingConfig)  # the "nerf" model's samples
-    grid: GridFieldConfig = dataclasses.field(default_factory=GridFieldConfig)  # the "grid" model's field
-    hash: HashFieldConfig = dataclasses.field(default_factory=HashFieldConfig)  # the "hash" model's field
+    # Every registered model's groups of settings, (name, frozen dataclass) in the registry's
+    # order: "field" and "sampling" (the "nerf" model's), "grid", "hash"... (see the docstring).
+    groups: tuple[tuple[str, Any], ...] = dataclasses.field(default_factory=lambda: default_groups())
     grid_step_ratio: float = 0.5  # marched models: step as a fraction of an occupancy cell
     occupancy_warmup: int = 16  # steps before empty space is skipped at all
     occupancy_every: int = 16
@@ -90,6 +91,20 @@ class TrainConfig:
     checkpoint_every: int = 1000
     log_every: int = 10
 
+    def __getattr__(self, name: str) -> Any:
+        # Only reached when no field has the name: a model's group of settings.
+        for group, settings in self.__dict__.get("groups", ()):
+            if group == name:
+                return settings
+        raise AttributeError(f"{type(self).__name__} has no setting {name!r}")
+
+    def with_settings(self, **changes: Any) -> "TrainConfig":
+        """This config with some settings changed, groups of settings too (``grid=...``)."""
+        groups = dict(self.groups)
+        for name in [name for name in changes if name in groups]:
+            groups[name] = changes.pop(name)
+        return dataclasses.replace(self, groups=tuple(groups.items()), **changes)
+
     def learning_rate_decay(self, step: int) -> float:
         """The factor every learning rate is multiplied by at ``step`` (1 at the start)."""
         if self.learning_rate <= 0:  # a frozen model (learning_rate 0) has nothing to decay
@@ -116,7 +131,14 @@ class TrainConfig:
         return max(steps, by_time) if stop_at_iterations else by_time
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """Every setting, the models' groups at the top level after ``model``."""
+        data: dict[str, Any] = {}
+        for key, value in dataclasses.asdict(self).items():
+            if key != "groups":
+                data[key] = value
+            if key == "model":
+                data.update((name, dataclasses.asdict(settings)) for name, settings in self.groups)
+        return data
 
     @classmethod
     def from_dict(cls, data: dict) -> "TrainConfig":
@@ -124,16 +146,24 @@ class TrainConfig:
         # Runs before colour was skipped by transmittance (GridModel.OPAQUE_TRANSMITTANCE)
         # stored a weight threshold; it no longer decides anything.
         values.pop("colour_weight_threshold", None)
-        values["field"] = FieldConfig(**{**values["field"], "skips": tuple(values["field"]["skips"])})
-        values["sampling"] = SamplingConfig(**values["sampling"])
-        values["grid"] = GridFieldConfig(**{**values["grid"],
-                                            "upsample_iterations": tuple(values["grid"]["upsample_iterations"])})
+        # A group a run lacks (the "hash" group in runs from before the hash field): its defaults.
+        groups = tuple((name, _settings_from_dict(config_class, values.pop(name, {})))
+                       for name, config_class in settings_groups().items())
         values["adam_betas"] = tuple(values["adam_betas"])
         values.setdefault("schedule", "iterations")  # runs from before budget schedules
         values.setdefault("coarse_images", False)  # runs from before coarse-to-fine images
-        # Runs from before the hash field have no "hash" group: its defaults.
-        values["hash"] = HashFieldConfig(**values.get("hash", {}))
-        return cls(**values)
+        return cls(**values, groups=groups)
+
+
+def default_groups() -> tuple[tuple[str, Any], ...]:
+    """Each registered model's groups with their classes' defaults."""
+    return tuple((name, config_class()) for name, config_class in settings_groups().items())
+
+
+def _settings_from_dict(config_class: type, values: dict) -> Any:
+    """A group's dataclass from its JSON object (JSON's lists back to the tuples it holds)."""
+    tuples = {field.name for field in dataclasses.fields(config_class) if isinstance(field.default, tuple)}
+    return config_class(**{key: tuple(value) if key in tuples else value for key, value in values.items()})
 
 
 def with_overrides(config: TrainConfig, assignments: list[str]) -> TrainConfig:

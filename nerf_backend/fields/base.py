@@ -1,6 +1,8 @@
 """What a marched model asks of its field: density and colour at world points over the
 scene's box, and an estimate of where density is, for the occupancy grid. A new field that
-implements these is marched, trained, rendered and benched with no other change."""
+implements these, names its settings (``SETTINGS_GROUP``, a ``Config`` dataclass) and has an
+entry in ``models/registry.py`` (``MarchedModel.of(TheField)``) is marched, trained, rendered
+and benched with no other change."""
 
 from __future__ import annotations
 
@@ -30,7 +32,15 @@ def mlp_flops(network: nn.Module) -> int:
 
 class MarchableField(nn.Module):
     """``density(x [P,3]) -> [P]`` and ``colour(x [P,3], d [P,3]) -> [P,3]`` in world space,
-    over ``box`` (points outside it are never asked for)."""
+    over ``box`` (points outside it are never asked for). Built as ``Field(config, box)``."""
+
+    # The field's settings: their group's name in a run's config, presets.json and --set
+    # (``grid.resolution=96``), and the frozen dataclass holding them.
+    SETTINGS_GROUP: str = ""
+    Config: type = object
+    # Rays per inference pass when rendering whole images, where the marched models' default
+    # does not suit the field (None: the default).
+    render_chunk: int | None = None
 
     def __init__(self, box: SceneBounds) -> None:
         super().__init__()

@@ -50,6 +50,9 @@ class GridField(MarchableField):
     The occupancy grid's cells are the grid's cells.
     """
 
+    SETTINGS_GROUP = "grid"
+    Config = GridFieldConfig
+
     def __init__(self, config: GridFieldConfig, box: SceneBounds) -> None:
         super().__init__(box)
         self.config = config

@@ -58,6 +58,11 @@ class _TruncatedExp(torch.autograd.Function):
 class HashField(MarchableField):
     """``density(x [P,3]) -> [P]`` and ``colour(x [P,3], d [P,3]) -> [P,3]`` in world space."""
 
+    SETTINGS_GROUP = "hash"
+    Config = HashFieldConfig
+    # Each sample reads 16 levels × 8 corners: smaller chunks keep that in memory.
+    render_chunk = 2048
+
     def __init__(self, config: HashFieldConfig, box: SceneBounds) -> None:
         super().__init__(box)
         self.config = config

@@ -5,6 +5,8 @@ generator) -> list[RenderOutput]``; the training loss sums the squared error of 
 (the paper's coarse + fine) and the last output is the image (``final_output``). A model
 declares its optimiser's parameter groups, keeps its own state between steps
 (``before_step``) and takes the shapes of a checkpoint it is loaded from (``match_state``).
+Its own settings are groups it names in ``SETTINGS``; a run's config carries every registered
+model's groups, so a new model's settings need no change outside the model.
 """
 
 from __future__ import annotations
@@ -17,21 +19,14 @@ from torch import Tensor, nn
 
 from ..core.scene_bounds import SceneBounds
 from ..data.occupancy_prior import OccupancyPrior
-from ..fields.grid_field import GridFieldConfig
-from ..fields.hash_field import HashFieldConfig
-from ..fields.mlp_field import FieldConfig
 from ..model_components.render_output import RenderOutput
-from ..model_components.samplers import SamplingConfig
 
 
 class ModelSettings(Protocol):
-    """The settings models read (the run's ``TrainConfig`` has them, among training ones)."""
+    """The settings models read (the run's ``TrainConfig`` has them, among training ones):
+    these, and each group a model names in its ``SETTINGS`` as an attribute of that name."""
 
     model: str
-    field: FieldConfig
-    sampling: SamplingConfig
-    grid: GridFieldConfig
-    hash: HashFieldConfig
     grid_step_ratio: float
     occupancy_warmup: int
     occupancy_every: int
@@ -58,6 +53,9 @@ class Model(nn.Module):
     render_chunk: int = 1024
     # Whether the model reads the dataset's occupancy prior (where the scene can be).
     uses_occupancy_prior: bool = False
+    # The groups of settings the model reads, by name (``"grid"``: ``GridFieldConfig``): the
+    # run's config has one of each, with the class's defaults unless a preset or --set says.
+    SETTINGS: dict[str, type] = {}
 
     @classmethod
     def build(cls, settings: ModelSettings, box: SceneBounds | None, prior: OccupancyPrior | None) -> "Model":

@@ -15,8 +15,6 @@ from ..core.scene_bounds import SceneBounds
 from ..data.occupancy_prior import OccupancyPrior
 from ..field_components.grid_encodings import Vertices
 from ..fields.base import MarchableField
-from ..fields.grid_field import GridField
-from ..fields.hash_field import HashField
 from ..model_components.marcher import OPAQUE_TRANSMITTANCE, render_marched, render_marched_stopping_early
 from ..model_components.occupancy import OccupancyGrid
 from ..model_components.render_output import RenderOutput
@@ -55,11 +53,31 @@ class MarchedModel(Model):
         self._fit_sampling_to_field()
 
     @classmethod
+    def of(cls, field_class: type[MarchableField]) -> type["MarchedModel"]:
+        """The marched model of ``field_class`` (``GridField`` gives ``GridModel``), made as
+        ``Model(settings, box, prior)``: the field from its settings group, over the box."""
+
+        def __init__(self, settings: ModelSettings, box: SceneBounds, prior: OccupancyPrior | None = None) -> None:
+            field = field_class(getattr(settings, field_class.SETTINGS_GROUP), box)
+            MarchedModel.__init__(self, field, MarchConfig.from_settings(settings), prior)
+
+        attributes = {"__init__": __init__, "SETTINGS": {field_class.SETTINGS_GROUP: field_class.Config},
+                      "__doc__": f"{field_class.__name__} marched with an occupancy grid.", "__module__": cls.__module__}
+        if field_class.render_chunk is not None:
+            attributes["render_chunk"] = field_class.render_chunk
+        return type(field_class.__name__.removesuffix("Field") + "Model", (cls,), attributes)
+
+    @classmethod
     def build(cls, settings: ModelSettings, box: SceneBounds | None, prior: OccupancyPrior | None) -> "MarchedModel":
-        """Subclasses are built from ``(settings, box, prior)``: the field over the box."""
+        """A model made by ``of``, over the scene's box."""
         if box is None:
             raise ValueError(f"the {settings.model} model needs the scene's box")
         return cls(settings, box, prior)  # type: ignore[call-arg]
+
+    def resize(self, vertices: Vertices) -> None:
+        """Give a grid field other vertices, and fit the march to its new cells."""
+        self.field.resize(vertices)
+        self._fit_sampling_to_field()
 
     def _fit_sampling_to_field(self) -> None:
         """Step length, samples per ray and occupancy cells follow the field's cells; the
@@ -178,29 +196,3 @@ class MarchedModel(Model):
             offset = torch.rand((origins.shape[0], 1), generator=generator, device=origins.device,
                                 dtype=origins.dtype)
         return [render_marched(origins, directions, t_near, t_far, field_fn=self.field, offset=offset, **march)]
-
-
-class GridModel(MarchedModel):
-    """The fast model: factorised grids (TensoRF's vector-matrix form) marched with an
-    occupancy grid whose cells are the grid's cells."""
-
-    field: GridField
-
-    def __init__(self, settings: ModelSettings, box: SceneBounds, prior: OccupancyPrior | None = None) -> None:
-        super().__init__(GridField(settings.grid, box), MarchConfig.from_settings(settings), prior)
-
-
-    def resize(self, vertices: Vertices) -> None:
-        self.field.resize(vertices)
-        self._fit_sampling_to_field()
-
-
-class HashModel(MarchedModel):
-    """Instant-NGP's model: a multiresolution hash-grid field marched with an occupancy grid."""
-
-    field: HashField
-    # Each sample reads 16 levels × 8 corners: smaller chunks keep that in memory.
-    render_chunk = 2048
-
-    def __init__(self, settings: ModelSettings, box: SceneBounds, prior: OccupancyPrior | None = None) -> None:
-        super().__init__(HashField(settings.hash, box), MarchConfig.from_settings(settings), prior)

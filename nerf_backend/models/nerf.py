@@ -7,7 +7,7 @@ from torch import Tensor
 
 from ..core.scene_bounds import SceneBounds
 from ..data.occupancy_prior import OccupancyPrior
-from ..fields.mlp_field import NerfField
+from ..fields.mlp_field import FieldConfig, NerfField
 from ..model_components.render_output import RenderOutput
 from ..model_components.samplers import SamplingConfig, interval_midpoints, merge_edges, sample_pdf, stratified_edges
 from ..model_components.volume_rendering import composite_rgb, expected_depth, render_weights
@@ -95,6 +95,8 @@ def _render_coarse_fine(
 
 class NerfModel(Model):
     """The paper's model: coarse field + (optional) fine field, rendered coarse-to-fine."""
+
+    SETTINGS = {"field": FieldConfig, "sampling": SamplingConfig}
 
     def __init__(self, settings: ModelSettings) -> None:
         super().__init__()

@@ -1,19 +1,24 @@
 """Every model by the name a preset gives it (``TrainConfig.model``): a new model is one
-entry here."""
+entry here. A marched field needs no model code of its own: ``MarchedModel.of(TheField)``."""
 
 from __future__ import annotations
 
 from ..core.errors import NerfError
 from ..core.scene_bounds import SceneBounds
 from ..data.occupancy_prior import OccupancyPrior
+from ..fields.grid_field import GridField
+from ..fields.hash_field import HashField
 from .base import Model, ModelSettings
-from .marched import GridModel, HashModel
+from .marched import MarchedModel
 from .nerf import NerfModel
+
+GridModel = MarchedModel.of(GridField)  # factorised grids + occupancy march (the fast preset)
+HashModel = MarchedModel.of(HashField)  # multiresolution hash grid + occupancy march (Instant-NGP)
 
 MODELS: dict[str, type[Model]] = {
     "nerf": NerfModel,  # the paper's MLPs, coarse-to-fine
-    "grid": GridModel,  # factorised grids + occupancy march (the fast preset)
-    "hash": HashModel,  # multiresolution hash grid + occupancy march (Instant-NGP)
+    "grid": GridModel,
+    "hash": HashModel,
 }
 
 
@@ -22,6 +27,17 @@ def model_class(name: str) -> type[Model]:
         return MODELS[name]
     except KeyError:
         raise NerfError(f"unknown model {name!r}; choose one of {', '.join(MODELS)}") from None
+
+
+def settings_groups() -> dict[str, type]:
+    """Every registered model's groups of settings by name, in the registry's order (a run's
+    config holds one of each); two models naming one group must mean the same class."""
+    groups: dict[str, type] = {}
+    for name, model in MODELS.items():
+        for group, config_class in model.SETTINGS.items():
+            if groups.setdefault(group, config_class) is not config_class:
+                raise NerfError(f"model {name!r}: settings group {group!r} is another model's {groups[group].__name__}")
+    return groups
 
 
 def build_model(settings: ModelSettings, box: SceneBounds | None, prior: OccupancyPrior | None = None) -> Model:

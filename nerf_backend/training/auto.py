@@ -107,8 +107,8 @@ def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profil
 
     grid = dataclasses.replace(base.grid, resolution=resolution, initial_resolution=initial,
                                upsample_iterations=schedule, view_dependent=view_dependent)
-    config = dataclasses.replace(base, preset="auto", grid=grid, random_background=random_background,
-                                 occupancy_prior=prior)
+    config = base.with_settings(preset="auto", grid=grid, random_background=random_background,
+                                occupancy_prior=prior)
     diagonal = math.sqrt(sum(side ** 2 for side in sides))
     decisions["samples"] = {
         "value": math.ceil(diagonal / (extent / (resolution - 1) * config.grid_step_ratio)) + 1,
