@@ -9,6 +9,7 @@ from pathlib import Path
 import bpy
 
 from nerf_contract.dataset_layout import safe_name
+from nerf_contract.run_layout import ANIMATIONS_DIR
 
 from .jobs import python_in_venv
 from .torch_builds import PlatformFacts, TorchBuild, choose_build, detect_facts
@@ -31,7 +32,7 @@ def animation_dir(context) -> Path:
     (the camera path's own folder name, so the CLI and the add-on agree)."""
     camera = context.scene.camera
     name = safe_name(camera.name if camera is not None else "camera")
-    return run_dir(context) / "animation" / name
+    return run_dir(context) / ANIMATIONS_DIR / name
 
 
 def managed_venv() -> Path:

@@ -19,7 +19,15 @@ import time
 from pathlib import Path
 
 from nerf_contract.dataset_layout import CAMERA_PATH_NAME, GEOMETRY_NAME, SPLITS, camera_path_folder, transforms_name
-from nerf_contract.run_layout import ANIMATION_RECORD, CONFIG_NAME, METRICS_NAME, RENDERS_DIR, REPORT_DIR, REPORT_INDEX
+from nerf_contract.run_layout import (
+    ANIMATION_RECORD,
+    ANIMATIONS_DIR,
+    CONFIG_NAME,
+    METRICS_NAME,
+    RENDERS_DIR,
+    REPORT_DIR,
+    REPORT_INDEX,
+)
 from nerf_contract.training_events import Done
 
 from .data.run_folder import RunFolder
@@ -145,7 +153,7 @@ def _summary(args: argparse.Namespace, dataset: Path, run: Path, path: Path, tim
     geometry = run / GEOMETRY_RECORD
     if geometry.is_file():
         print(f"   {geometry_line(json.loads(geometry.read_text()))}")
-    animation = json.loads((run / "animation" / path.parent.name / ANIMATION_RECORD).read_text())
+    animation = json.loads((run / ANIMATIONS_DIR / path.parent.name / ANIMATION_RECORD).read_text())
     width, height = animation["size"]
     seconds = animation.get("seconds_per_frame")
     print(f"   animation: {len(animation['frames'])} frames at {width}×{height}"

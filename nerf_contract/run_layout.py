@@ -5,6 +5,7 @@
     RUN/checkpoint.pt        the latest checkpoint, replaced atomically
     RUN/preview.png          the latest validation render
     RUN/renders/SPLIT/       rendered views; RUN/metrics.json from ``eval``
+    RUN/animation/CAMERA/    a camera path's frames, video and animation.json (``render --camera-path``)
     RUN/report/index.html    the comparison page (``report``)
 
 and what ``compare`` and ``render --camera-path`` write into their ``--out`` folder::
@@ -18,6 +19,7 @@ EVENTS_NAME = "events.jsonl"
 CHECKPOINT_NAME = "checkpoint.pt"
 PREVIEW_NAME = "preview.png"
 RENDERS_DIR = "renders"
+ANIMATIONS_DIR = "animation"  # RUN/animation/CAMERA: a camera path's renders by default
 METRICS_NAME = "metrics.json"
 REPORT_DIR = "report"
 REPORT_INDEX = "index.html"

@@ -23,8 +23,8 @@ Layer 7: above training and evaluation, which it drives.
 """
 
 from .curves import THRESHOLDS_DB, curve_points, time_to_reach
-from .runner import bench_variant, run_bench
 from .hardware import measure_hardware
+from .runner import bench_variant, run_bench
 from .step_cost import step_cost
 from .step_profile import profile_marched_step, profile_markdown
 from .suite import COLLAPSE_MARGIN_DB, find_datasets, run_suite, scene_blank_psnr

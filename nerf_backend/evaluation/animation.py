@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nerf_contract.run_layout import ANIMATION_FRAMES_DIR, ANIMATION_RECORD
+from nerf_contract.run_layout import ANIMATION_FRAMES_DIR, ANIMATION_RECORD, ANIMATIONS_DIR
 
 from ..core.errors import NerfError
 from ..core.files import write_json, write_png
@@ -47,7 +47,7 @@ FRAME_METRICS = (METRICS_BY_KEY["psnr"], METRICS_BY_KEY["ssim"])  # LPIPS per 80
 
 def default_out_dir(run: RunFolder, path_json: Path) -> Path:
     """``RUN/animation/NAME``: NAME is the camera path's folder (datasets_gen names it after the camera)."""
-    return run.path / "animation" / Path(path_json).resolve().parent.name
+    return run.path / ANIMATIONS_DIR / Path(path_json).resolve().parent.name
 
 
 def _path_digest(animation: CameraAnimation) -> str:

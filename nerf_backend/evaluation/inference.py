@@ -8,6 +8,8 @@ from pathlib import Path
 
 import torch
 
+from nerf_contract.run_layout import RENDERS_DIR
+
 from ..configs.train_config import TrainConfig
 from ..core.files import write_json
 from ..core.progress import Progress
@@ -50,7 +52,7 @@ def render_split(run: RunFolder, split: str, device: torch.device, chunk: int | 
     dataset_split = load_split(stored["dataset"], split)
     model, ray_bounds, state = load_trained_model(run, device)
     intrinsics = dataset_split.intrinsics if scale == 1.0 else dataset_split.intrinsics.scaled(scale)
-    out_dir = run.renders_dir(split) if scale == 1.0 else run.path / "renders" / f"{split}_x{scale:g}"
+    out_dir = run.renders_dir(split) if scale == 1.0 else run.path / RENDERS_DIR / f"{split}_x{scale:g}"
     stems = [view_stem(p) for p in dataset_split.image_paths]
     bar = Progress(len(stems), f"render {split}", unit="view", enabled=progress)
     start = time.perf_counter()

@@ -20,7 +20,14 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from nerf_contract.run_layout import ANIMATION_RECORD, CONFIG_NAME, METRICS_NAME, REPORT_DIR, REPORT_INDEX
+from nerf_contract.run_layout import (
+    ANIMATION_RECORD,
+    ANIMATIONS_DIR,
+    CONFIG_NAME,
+    METRICS_NAME,
+    REPORT_DIR,
+    REPORT_INDEX,
+)
 from nerf_contract.training_events import Checkpoint, Collapse, Done, Event
 
 from ..core.devices import resolve_device
@@ -251,7 +258,7 @@ def _animation_sections(page: ReportPage, run: Path, prefix: str) -> str:
     """Each camera animation rendered with the run (``render --camera-path``): its video (side
     by side with Cycles when compared), the per-frame scores and their plot."""
     out = []
-    for record_path in sorted((run / "animation").glob(f"*/{ANIMATION_RECORD}")):
+    for record_path in sorted((run / ANIMATIONS_DIR).glob(f"*/{ANIMATION_RECORD}")):
         record = json.loads(record_path.read_text())
         if record.get("video") is None:
             continue  # not finished
