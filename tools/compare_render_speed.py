@@ -6,9 +6,11 @@ the working tree's, on the same trained run, the same test views and the same th
 Each side renders every view twice over (alternating, so both meet the same machine); the
 median seconds per view, the mean PSNR against the dataset's test views and the largest pixel
 difference between the two sides are printed. The baseline's ``marcher.py`` and
-``occupancy.py`` are read with ``git show`` and loaded beside the current ones: the baseline
-marches the model's training occupancy grid with its own skip grid, the current side what the
-model renders with today (``render_occupancy``); the model is the same.
+``occupancy.py`` are read with ``git show`` and loaded beside the current ones: where its
+``occupancy.py`` differs from today's, the baseline marches the model's training occupancy grid
+with its own skip grid, the current side what the model renders with today
+(``render_occupancy``); where it is the same, both march ``render_occupancy``. The model is the
+same.
 """
 
 from __future__ import annotations
@@ -51,12 +53,15 @@ def _load_baseline(revision: str, relative: str, name: str):
 
 
 def baseline_march(revision: str, model):
-    """``render_marched_stopping_early`` as it was at ``revision``, over the model's training
-    occupancy grid held in that revision's ``OccupancyGrid``."""
+    """``render_marched_stopping_early`` as it was at ``revision``: over the model's training
+    occupancy grid held in that revision's ``OccupancyGrid`` where that class has changed since."""
     occupancy = _load_baseline(revision, "model_components/occupancy.py",
                                "nerf_backend.model_components._baseline_occupancy")
     march = _load_baseline(revision, "model_components/marcher.py",
                            "nerf_backend.model_components._baseline_marcher").render_marched_stopping_early
+    current = (ROOT / "nerf_backend/model_components/occupancy.py").read_text()
+    if Path(occupancy.__file__).read_text() == current:
+        return march
     trained = model.occupancy
     grid = occupancy.OccupancyGrid(trained.box_min, trained.box_max, trained.cells).to(trained.occupied.device)
     grid.occupied.copy_(trained.occupied)
