@@ -41,7 +41,8 @@ class TrainConfig:
     render_alpha_threshold: float = 1e-2
     # Grid models: start the occupancy grid from the dataset's occupancy prior (Blender's
     # geometry, occupancy_prior.npz) and never mark a cell it leaves out: "surface" (cells
-    # the surfaces pass through, with a margin), "solid" (those and what they enclose) or "none".
+    # the surfaces pass through, with a margin), "solid" (those and what they enclose), "none",
+    # or "available" (auto's kind, solid, where the dataset has a prior; else none).
     occupancy_prior: str = "none"
     # "protocol": near 2, far 6 for every ray (the reference loaders). "scene": each ray's
     # entry and exit of the scene's bounding box from scene_profile.json (falls back to

@@ -47,6 +47,9 @@ class OccupancyPrior:
     box_min: tuple[float, float, float]
     cell_size: float
     kind: str  # "surface" or "solid"
+    # Cells every marked surface cell was grown by (the profile's margin): the surface itself
+    # lies between this many and one more cells inside the marked region's boundary.
+    margin_cells: int = 0
 
     @property
     def box_max(self) -> tuple[float, float, float]:
@@ -110,4 +113,10 @@ def load_occupancy_prior(dataset_dir: Path | str, kind: str) -> OccupancyPrior |
         raise DatasetError(f"{path}: '{kind}' must be a 3-D bool array, got {occupied.dtype} {occupied.shape}")
     if box_min.shape != (3,) or not np.isfinite(box_min).all() or not (math.isfinite(cell_size) and cell_size > 0):
         raise DatasetError(f"{path}: 'box_min' must be 3 finite numbers and 'cell_size' a positive number")
-    return OccupancyPrior(torch.from_numpy(occupied.copy()), tuple(box_min.tolist()), cell_size, kind)  # type: ignore[arg-type]
+    margin = record.get("margin")
+    margin_cells = margin.get("cells") if isinstance(margin, dict) else 0
+    if not isinstance(margin_cells, int) or isinstance(margin_cells, bool) or margin_cells < 0:
+        raise DatasetError(f"{profile_path}: 'occupancy_prior' 'margin' 'cells' must be a whole number of cells, "
+                           f"got {margin_cells!r}")
+    return OccupancyPrior(torch.from_numpy(occupied.copy()), tuple(box_min.tolist()), cell_size, kind,  # type: ignore[arg-type]
+                          margin_cells)

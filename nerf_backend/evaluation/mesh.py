@@ -167,14 +167,20 @@ def run_mesh(run: RunFolder, device: torch.device, resolution: int = 256,
     model, ray_bounds, state = load_trained_model(run, device)
     box = ray_bounds.box if ray_bounds.box is not None else PROTOCOL_BOX
     render_step = getattr(model, "step", None)  # a marched model's step along each ray
-    mesh = extract_mesh(model.density_at, model.colour_at, box, resolution, threshold, device, render_step)
     voxel = max(hi - lo for lo, hi in zip(box.box_min, box.box_max)) / (resolution - 1)
+    surface = model.surface_function()
+    if surface is not None and threshold is None:  # a signed distance: its zero level set
+        mesh = extract_mesh(surface, model.colour_at, box, resolution, 0.0, device)
+        level, rule = 0.0, "the signed distance's zero level set"
+    else:
+        mesh = extract_mesh(model.density_at, model.colour_at, box, resolution, threshold, device, render_step)
+        level = threshold if threshold is not None else default_threshold(render_step or voxel)
+        rule = ("given" if threshold is not None else
+                f"ln 2 / step: the density at which one render step ({render_step or voxel:.5g}) is half opaque")
     return mesh, {
         "iteration": state["iteration"], "vertices": len(mesh.vertices), "faces": len(mesh.faces),
         "resolution": resolution, "voxel_size": voxel, "box": {"min": list(box.box_min), "max": list(box.box_max)},
-        "threshold": threshold if threshold is not None else default_threshold(render_step or voxel),
-        "threshold_rule": "given" if threshold is not None else
-        f"ln 2 / step: the density at which one render step ({render_step or voxel:.5g}) is half opaque",
+        "threshold": level, "threshold_rule": rule,
     }
 
 

@@ -6,7 +6,7 @@ and benched with no other change."""
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -32,7 +32,8 @@ def mlp_flops(network: nn.Module) -> int:
 
 class MarchableField(nn.Module):
     """``density(x [P,3]) -> [P]`` and ``colour(x [P,3], d [P,3]) -> [P,3]`` in world space,
-    over ``box`` (points outside it are never asked for). Built as ``Field(config, box)``."""
+    over ``box`` (points outside it are never asked for). Built as ``Field(config, box)``
+    (``Field(config, box, prior)`` where ``STARTS_FROM_PRIOR``)."""
 
     # The field's settings: their group's name in a run's config, presets.json and --set
     # (``grid.resolution=96``), and the frozen dataclass holding them.
@@ -41,6 +42,9 @@ class MarchableField(nn.Module):
     # Rays per inference pass when rendering whole images, where the marched models' default
     # does not suit the field (None: the default).
     render_chunk: int | None = None
+    # Whether the field is built from the dataset's occupancy prior as well
+    # (``Field(config, box, prior)``): the surface field starts its distance from it.
+    STARTS_FROM_PRIOR: bool = False
 
     def __init__(self, box: SceneBounds) -> None:
         super().__init__()
@@ -92,6 +96,15 @@ class MarchableField(nn.Module):
     def density_from_volume(self, volume: Tensor | None, x: Tensor) -> Tensor:
         """``density(x)`` read from ``density_volume()``'s result."""
         return self.density(x)
+
+    def surface_function(self) -> Callable[[Tensor], Tensor] | None:
+        """``Model.surface_function``: positive inside, zero on the surface; None when the
+        surface is a level of the density."""
+        return None
+
+    def regularisation(self, generator: torch.Generator | None = None) -> Tensor | None:
+        """``Model.regularisation``: the field's own loss terms at a training step, or None."""
+        return None
 
     def encoding_parameters(self) -> list[nn.Parameter]:
         """Parameters of the spatial encoding (grids, hash tables): the optimiser gives them

@@ -16,9 +16,10 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..core.scene_bounds import SceneBounds, vertices_for
-from ..field_components.encodings import PositionalEncoding
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
-from .base import MarchableField, SampleCost, mlp_flops
+from ..field_components.grid_growth import grown_resolution
+from .base import MarchableField, SampleCost
+from .grid_appearance import GridAppearance
 
 
 @dataclass(frozen=True)
@@ -43,7 +44,7 @@ class GridFieldConfig:
     density_scale: float = 25.0
 
 
-class GridField(MarchableField):
+class GridField(GridAppearance, MarchableField):
     """``density(x [P,3]) -> [P]`` and ``colour(x [P,3], d [P,3]) -> [P,3]`` in world space.
 
     Points outside ``box`` read the grid's border values; callers sample inside the box.
@@ -58,15 +59,7 @@ class GridField(MarchableField):
         self.config = config
         vertices = self.vertices_at(config.initial_resolution)
         self.density_grid = VectorMatrixGrid(config.density_channels, vertices)
-        self.appearance_grid = VectorMatrixGrid(config.appearance_channels, vertices)
-        self.appearance_basis = nn.Linear(self.appearance_grid.out_dims, config.appearance_dims, bias=False)
-        self.direction_encoding = PositionalEncoding(3, config.direction_frequencies)
-        colour_in = config.appearance_dims + (self.direction_encoding.out_dims if config.view_dependent else 0)
-        self.colour_mlp = nn.Sequential(
-            nn.Linear(colour_in, config.hidden_width), nn.ReLU(inplace=True),
-            nn.Linear(config.hidden_width, config.hidden_width), nn.ReLU(inplace=True),
-            nn.Linear(config.hidden_width, 3),
-        )
+        self.build_appearance(config, vertices)
 
     @property
     def resolution(self) -> int:
@@ -80,11 +73,7 @@ class GridField(MarchableField):
     def resolution_after(self, iteration: int) -> int:
         """The schedule: the grid resolution once ``iteration`` steps have been taken."""
         config = self.config
-        done = sum(1 for at in config.upsample_iterations if iteration >= at)
-        if done == 0:
-            return config.initial_resolution
-        ratio = (config.resolution / config.initial_resolution) ** (done / len(config.upsample_iterations))
-        return round(config.initial_resolution * ratio)
+        return grown_resolution(config.initial_resolution, config.resolution, config.upsample_iterations, iteration)
 
     def vertices_at(self, resolution: int) -> Vertices:
         """The vertices on each axis for ``resolution`` along the box's longest side."""
@@ -101,19 +90,11 @@ class GridField(MarchableField):
     def density(self, x: Tensor) -> Tensor:
         return self.density_from_features(self.density_grid(self.normalise(x)).sum(dim=-1))
 
-    def colour(self, x: Tensor, directions: Tensor) -> Tensor:
-        features = self.appearance_basis(self.appearance_grid(self.normalise(x)))
-        if self.config.view_dependent:
-            features = torch.cat([features, self.direction_encoding(directions)], dim=-1)
-        return torch.sigmoid(self.colour_mlp(features).float())
-
     def sample_cost(self) -> dict[str, SampleCost]:
         # Each channel of a component reads 4 plane and 2 line values, and interpolating
         # takes a multiply-add of each.
-        per_channel = 3 * (4 + 2)
-        density, colour = per_channel * self.config.density_channels, per_channel * self.config.appearance_channels
-        costs = {"density": SampleCost(density, 2 * density),
-                 "colour": SampleCost(colour, 2 * colour + mlp_flops(self.appearance_basis) + mlp_flops(self.colour_mlp)),
+        density = 3 * (4 + 2) * self.config.density_channels
+        costs = {"density": SampleCost(density, 2 * density), "colour": self.appearance_cost(),
                  "frozen density": SampleCost(8, 16)}  # one trilinear read of the density volume
         return {**costs, "field": costs["density"] + costs["colour"]}
 

@@ -12,7 +12,7 @@ model's groups, so a new model's settings need no change outside the model.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Callable, Protocol
 
 import torch
 from torch import Tensor, nn
@@ -76,6 +76,17 @@ class Model(nn.Module):
     def colour_at(self, points: Tensor, directions: Tensor) -> Tensor:
         """Colour ``[P, 3]`` at ``points`` seen along ``directions``."""
         raise NotImplementedError
+
+    def surface_function(self) -> Callable[[Tensor], Tensor] | None:
+        """A function of world points ``[P, 3] -> [P]``, positive inside and zero on the surface
+        (a signed distance's negative), whose zero level set is the model's mesh; None for a
+        model whose surface is a level of its density."""
+        return None
+
+    def regularisation(self, generator: torch.Generator | None = None) -> Tensor | None:
+        """Loss terms of the model's own added to the photometric loss at each training step
+        (the surface field's eikonal term), or None."""
+        return None
 
     def parameter_groups(self) -> list[ParameterGroup]:
         """The optimiser's groups, in a fixed order (checkpoints store the optimiser by it)."""

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 from torch import Tensor
@@ -58,7 +59,8 @@ class MarchedModel(Model):
         ``Model(settings, box, prior)``: the field from its settings group, over the box."""
 
         def __init__(self, settings: ModelSettings, box: SceneBounds, prior: OccupancyPrior | None = None) -> None:
-            field = field_class(getattr(settings, field_class.SETTINGS_GROUP), box)
+            config = getattr(settings, field_class.SETTINGS_GROUP)
+            field = field_class(config, box, prior) if field_class.STARTS_FROM_PRIOR else field_class(config, box)
             MarchedModel.__init__(self, field, MarchConfig.from_settings(settings), prior)
 
         attributes = {"__init__": __init__, "SETTINGS": {field_class.SETTINGS_GROUP: field_class.Config},
@@ -131,6 +133,12 @@ class MarchedModel(Model):
 
     def density_at(self, points: Tensor) -> Tensor:
         return self.field.density(points)
+
+    def surface_function(self) -> Callable[[Tensor], Tensor] | None:
+        return self.field.surface_function()
+
+    def regularisation(self, generator: torch.Generator | None = None) -> Tensor | None:
+        return self.field.regularisation(generator)
 
     def colour_at(self, points: Tensor, directions: Tensor) -> Tensor:
         return self.field.colour(points, directions)

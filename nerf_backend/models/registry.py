@@ -8,17 +8,20 @@ from ..core.scene_bounds import SceneBounds
 from ..data.occupancy_prior import OccupancyPrior
 from ..fields.grid_field import GridField
 from ..fields.hash_field import HashField
+from ..fields.surface_field import SurfaceField
 from .base import Model, ModelSettings
 from .marched import MarchedModel
 from .nerf import NerfModel
 
 GridModel = MarchedModel.of(GridField)  # factorised grids + occupancy march (the fast preset)
 HashModel = MarchedModel.of(HashField)  # multiresolution hash grid + occupancy march (Instant-NGP)
+SurfaceModel = MarchedModel.of(SurfaceField)  # a signed distance in a dense grid, rendered as VolSDF's density
 
 MODELS: dict[str, type[Model]] = {
     "nerf": NerfModel,  # the paper's MLPs, coarse-to-fine
     "grid": GridModel,
     "hash": HashModel,
+    "surface": SurfaceModel,
 }
 
 

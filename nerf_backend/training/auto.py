@@ -31,6 +31,8 @@ from ..data.dataset import DatasetSplit
 MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
 # Which of the prior's fills auto uses (measured with bench: see the README).
 PRIOR_KIND = "solid"
+# occupancy_prior's value for "PRIOR_KIND where the dataset has a prior, else none".
+AVAILABLE_PRIOR = "available"
 
 
 def pixel_footprint(split: DatasetSplit, box: SceneBounds) -> float:

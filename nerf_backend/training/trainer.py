@@ -35,7 +35,7 @@ from ..metrics.image_metrics import mse_to_psnr, psnr
 from ..model_components.ray_bounds import RayBounds, choose_ray_bounds
 from ..models.base import Model
 from ..models.registry import build_model, model_class
-from .auto import auto_config, pixel_footprint
+from .auto import AVAILABLE_PRIOR, PRIOR_KIND, auto_config, pixel_footprint
 from .collapse_guard import CollapseGuard, Verdict, blank_psnr, recovery_config
 
 
@@ -411,6 +411,9 @@ class _Training:
         with stage("loss", items=rays):
             errors = [F.mse_loss(output.rgb.float(), target) for output in outputs]
             loss = torch.stack(errors).sum()
+            regularisation = model.regularisation(self.sample_generator)
+            if regularisation is not None:  # a field's own terms (the surface field's eikonal)
+                loss = loss + regularisation
             # Reading the loss waits for the device: on a GPU only when the step is logged
             # (a non-finite weight is caught before any checkpoint all the same).
             if (device.type == "cpu" or (self.iteration + 1) % config.log_every == 0) and not torch.isfinite(loss):
@@ -541,8 +544,11 @@ def _occupancy_prior(dataset: Path, config: TrainConfig) -> OccupancyPrior | Non
     """The dataset's occupancy prior of the kind ``config`` asks for (grid models only)."""
     if not model_class(config.model).uses_occupancy_prior or config.occupancy_prior == "none":
         return None
+    if config.occupancy_prior == AVAILABLE_PRIOR:
+        return load_occupancy_prior(dataset, PRIOR_KIND)
     if config.occupancy_prior not in PRIOR_KINDS:
-        raise NerfError(f"occupancy_prior {config.occupancy_prior!r}: choose none, {', '.join(PRIOR_KINDS)}")
+        raise NerfError(f"occupancy_prior {config.occupancy_prior!r}: choose none, {AVAILABLE_PRIOR}, "
+                        f"{', '.join(PRIOR_KINDS)}")
     prior = load_occupancy_prior(dataset, config.occupancy_prior)
     if prior is None:
         raise NerfError(f"{dataset}: occupancy_prior={config.occupancy_prior} asked for, but the dataset has no "

@@ -1,0 +1,51 @@
+"""Colour from a factorised feature grid through a small MLP (TensoRF's appearance), for any
+field whose config names ``appearance_channels``, ``appearance_dims``, ``hidden_width``,
+``view_dependent`` and ``direction_frequencies``: the grid field's colour and the surface
+field's are this one."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from ..field_components.encodings import PositionalEncoding
+from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
+from .base import SampleCost, mlp_flops
+
+
+class GridAppearance:
+    """Mixed into a ``MarchableField``: ``build_appearance`` in its ``__init__``, then
+    ``colour(x, d)``. The viewing direction's encoding is an input only when the config is
+    view-dependent."""
+
+    def build_appearance(self, config, vertices: Vertices, extra_inputs: int = 0) -> None:
+        """The appearance grid and MLP; ``extra_inputs``: features of the field's own that
+        ``colour`` is given besides (the surface field's normal)."""
+        self.appearance_grid = VectorMatrixGrid(config.appearance_channels, vertices)
+        self.appearance_basis = nn.Linear(self.appearance_grid.out_dims, config.appearance_dims, bias=False)
+        self.direction_encoding = PositionalEncoding(3, config.direction_frequencies)
+        colour_in = config.appearance_dims + (self.direction_encoding.out_dims if config.view_dependent else 0)
+        colour_in += extra_inputs
+        self.colour_mlp = nn.Sequential(
+            nn.Linear(colour_in, config.hidden_width), nn.ReLU(inplace=True),
+            nn.Linear(config.hidden_width, config.hidden_width), nn.ReLU(inplace=True),
+            nn.Linear(config.hidden_width, 3),
+        )
+
+    def colour(self, x: Tensor, directions: Tensor) -> Tensor:
+        return self.colour_with(x, directions)
+
+    def colour_with(self, x: Tensor, directions: Tensor, extra: Tensor | None = None) -> Tensor:
+        """``colour``, with the ``extra_inputs`` features given (``[P, extra_inputs]``)."""
+        features = [self.appearance_basis(self.appearance_grid(self.normalise(x)))]
+        if self.config.view_dependent:
+            features.append(self.direction_encoding(directions))
+        if extra is not None:
+            features.append(extra.to(features[0].dtype))
+        return torch.sigmoid(self.colour_mlp(torch.cat(features, dim=-1) if len(features) > 1 else features[0]).float())
+
+    def appearance_cost(self) -> SampleCost:
+        """One colour sample: each channel of a component reads 4 plane and 2 line values, and
+        interpolating takes a multiply-add of each."""
+        gathers = 3 * (4 + 2) * self.config.appearance_channels
+        return SampleCost(gathers, 2 * gathers + mlp_flops(self.appearance_basis) + mlp_flops(self.colour_mlp))
