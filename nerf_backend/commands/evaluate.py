@@ -40,7 +40,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mesh-resolution", type=positive_int, default=DEFAULT_MESH_RESOLUTION,
                         help=f"with --geometry: as mesh --resolution (default: {DEFAULT_MESH_RESOLUTION})")
     parser.add_argument("--mesh-threshold", type=positive_float, default=None,
-                        help="with --geometry: as mesh --threshold (default: ln 2 / the render step)")
+                        help="with --geometry: as mesh --threshold (default: ln 2 / the render step; a surface "
+                             "run: its signed distance's zero level set)")
     add_lpips_weights(parser)
 
 

@@ -24,7 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(BackendFlag.RESOLUTION, type=positive_int, default=256,
                         help="grid vertices along the scene box's longest side (default: 256)")
     parser.add_argument("--threshold", type=positive_float, default=None,
-                        help="surface density (default: ln 2 / the render step, where one step is half opaque)")
+                        help="surface density (default: ln 2 / the render step, where one step is half opaque; "
+                             "a surface run: its signed distance's zero level set, unless a threshold is given)")
     add_device(parser)
     parser.add_argument(BackendFlag.OVERWRITE, action="store_true", help="replace an existing mesh file")
 
