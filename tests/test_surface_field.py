@@ -117,3 +117,11 @@ def test_surface_preset_trains_and_meshes_its_zero_level_set(tiny_demo_dataset, 
     assert metrics["psnr"] > 24.0
     assert geometry["f_score"] > 0.65
     assert geometry["normal_consistency"] > 0.9
+
+
+def test_a_prior_without_a_surface_starts_from_the_sphere():
+    for fill in (False, True):
+        prior = OccupancyPrior(torch.full((8, 8, 8), fill), (-1.0, -1.0, -1.0), 0.25, "solid", 1)
+        field = SurfaceField(SurfaceFieldConfig(resolution=33, initial_resolution=33, initial_radius=0.5), BOX, prior)
+        distance = field.signed_distance(torch.tensor([[0.0, 0.0, 0.0], [0.75, 0.0, 0.0]])).detach()
+        assert distance.tolist() == pytest.approx([-0.5, 0.25], abs=1e-5)

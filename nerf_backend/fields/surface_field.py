@@ -105,10 +105,11 @@ class SurfaceField(GridAppearance, MarchableField):
                 for lo, hi, n in zip(self.box_min.tolist(), self.box_max.tolist(), vertices)]
 
     def _initial_distance(self, vertices: Vertices, prior: OccupancyPrior | None) -> Tensor:
-        """``[Nx, Ny, Nz]``: the signed distance to the prior's solid cells (vertices inside a
-        marked cell are inside), or to a sphere at the box's centre without a prior."""
+        """``[Nx, Ny, Nz]``: the signed distance to the surface the prior's solid cells imply, or
+        to a sphere at the box's centre without a prior (or with one that marks no cell, or
+        every cell: no surface to start from)."""
         axes = self._vertex_positions(vertices)
-        if prior is None:
+        if prior is None or not bool(prior.occupied.any()) or bool(prior.occupied.all()):
             centre = [(lo + hi) / 2 for lo, hi in zip(self.box_min.tolist(), self.box_max.tolist())]
             points = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
             radius = self.config.initial_radius * min(self.extent) / 2
