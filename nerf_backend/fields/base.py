@@ -30,6 +30,20 @@ def mlp_flops(network: nn.Module) -> int:
     return sum(2 * m.in_features * m.out_features for m in network.modules() if isinstance(m, nn.Linear))
 
 
+def cell_corner_max(vertex_values: Tensor) -> Tensor:
+    """The largest of each cell's 8 corner values: ``[Nx, Ny, Nz]`` vertices → ``[Nx-1, Ny-1, Nz-1]``
+    cells, one axis at a time (max_pool3d's 2×2×2 window took 376 ms at 256³ on 2 CPU cores;
+    three elementwise maxima, a few ms).
+
+    Example:
+        >>> cell_corner_max(torch.arange(8.0).view(2, 2, 2)).tolist()
+        [[[7.0]]]
+    """
+    cell_max = torch.maximum(vertex_values[:-1], vertex_values[1:])
+    cell_max = torch.maximum(cell_max[:, :-1], cell_max[:, 1:])
+    return torch.maximum(cell_max[:, :, :-1], cell_max[:, :, 1:])
+
+
 class MarchableField(nn.Module):
     """``density(x [P,3]) -> [P]`` and ``colour(x [P,3], d [P,3]) -> [P,3]`` in world space,
     over ``box`` (points outside it are never asked for). Built as ``Field(config, box)``

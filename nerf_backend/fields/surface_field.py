@@ -37,7 +37,7 @@ from ..core.scene_bounds import SceneBounds, vertices_for
 from ..data.occupancy_prior import OccupancyPrior
 from ..field_components.dense_grid import DenseGrid, Vertices
 from ..field_components.grid_growth import grown_resolution
-from .base import MarchableField, SampleCost
+from .base import MarchableField, SampleCost, cell_corner_max
 from .grid_appearance import GridAppearance
 
 
@@ -210,11 +210,7 @@ class SurfaceField(GridAppearance, MarchableField):
     def cell_max_density(self) -> Tensor:
         """Each cell's largest density, exactly: the distance is trilinear within a cell, so
         its least value is at a corner, and density falls as distance grows."""
-        distance = self.sdf_grid.vertex_values()
-        least = torch.minimum(distance[:-1], distance[1:])
-        least = torch.minimum(least[:, :-1], least[:, 1:])
-        least = torch.minimum(least[:, :, :-1], least[:, :, 1:])
-        return self.density_from_distance(least)
+        return cell_corner_max(self.density_from_distance(self.sdf_grid.vertex_values()))
 
     @torch.no_grad()
     def occupancy_estimate(self) -> tuple[Tensor, float]:
