@@ -44,6 +44,43 @@ def test_vector_matrix_interpolation_matches_a_hand_written_reference():
         assert torch.allclose(got, torch.cat(expected), atol=1e-12)
 
 
+def test_the_cpu_row_kernel_reads_the_grid_as_grid_sample_does():
+    """The CPU kernel (channel rows through embedding_bag) against grid_sample, features and
+    every parameter's gradient, for points inside, on the faces of and outside the grid
+    (zero padding: a cell beyond a face fades to 0)."""
+    torch.manual_seed(3)
+    grid = VectorMatrixGrid(channels=5, vertices=(9, 7, 6)).double()
+    points = torch.rand(400, 3, dtype=torch.float64) * 2.6 - 1.3
+    points[:6] = torch.tensor([[-1.0, -1, -1], [1, 1, 1], [1, -1, 0.3], [-1.1, 0, 0], [1.6, -1.6, 1.6], [0, 0, 1.05]])
+    upstream = torch.randn(400, 15, dtype=torch.float64)
+    gradients = []
+    for kernel in (grid._forward_rows, grid._forward_grid_sample):
+        grid.zero_grad()
+        features = kernel(points)
+        (features * upstream).sum().backward()
+        gradients.append((features.detach(), [p.grad.clone() for p in grid.parameters()]))
+    (rows, row_grads), (sampled, sampled_grads) = gradients
+    assert torch.allclose(rows, sampled, atol=1e-12)
+    assert rows[4].abs().max() == 0  # a cell and more beyond every face
+    for got, expected in zip(row_grads, sampled_grads):
+        assert torch.allclose(got, expected, atol=1e-12)
+
+
+def test_the_row_tables_kept_for_rendering_follow_the_weights():
+    torch.manual_seed(4)
+    grid = VectorMatrixGrid(channels=3, vertices=6)
+    points = torch.rand(50, 3) * 2 - 1
+    with torch.no_grad():
+        before = grid(points)
+        grid.planes[1].mul_(2.0)  # an optimiser step: in place
+        after = grid(points)
+        assert torch.allclose(after, grid._forward_grid_sample(points), atol=1e-6)
+        assert not torch.allclose(after, before)
+    grid.resize(8)  # new parameters
+    with torch.no_grad():
+        assert torch.allclose(grid(points), grid._forward_grid_sample(points), atol=1e-6)
+
+
 def test_dense_sum_equals_the_interpolated_feature_sum_at_vertices():
     torch.manual_seed(1)
     vertices = torch.tensor([7, 5, 6])

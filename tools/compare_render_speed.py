@@ -1,5 +1,6 @@
-"""Render speed, side by side in one process: the inference march of an earlier commit against
-the working tree's, on the same trained run, the same test views and the same threads.
+"""Render speed, side by side in one process: the inference march and grid reads of an earlier
+commit against the working tree's, on the same trained run, the same test views and the same
+threads.
 
     python tools/compare_render_speed.py RUN DATASET [--baseline b4fbebe] [--views 0,5,10,15]
 
@@ -9,8 +10,9 @@ difference between the two sides are printed. The baseline's ``marcher.py`` and
 ``occupancy.py`` are read with ``git show`` and loaded beside the current ones: where its
 ``occupancy.py`` differs from today's, the baseline marches the model's training occupancy grid
 with its own skip grid, the current side what the model renders with today
-(``render_occupancy``); where it is the same, both march ``render_occupancy``. The model is the
-same.
+(``render_occupancy``); where it is the same, both march ``render_occupancy``. The baseline's
+``VectorMatrixGrid.forward`` (``field_components/grid_encodings.py``) reads the same grids on its
+side. The model is the same.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from nerf_backend.data.dataset import load_split  # noqa: E402
 from nerf_backend.data.run_folder import RunFolder  # noqa: E402
 from nerf_backend.evaluation.inference import load_trained_model  # noqa: E402
 from nerf_backend.evaluation.render_views import render_image  # noqa: E402
+from nerf_backend.field_components.grid_encodings import VectorMatrixGrid  # noqa: E402
 from nerf_backend.metrics.image_metrics import psnr  # noqa: E402
 
 
@@ -83,11 +86,16 @@ def main() -> int:
     split = load_split(args.dataset, "test")
     views = [int(v) for v in args.views.split(",")]
     sides = {"baseline": baseline_march(args.baseline, model), "current": marched.render_marched_stopping_early}
+    grid_reads = {"baseline": _load_baseline(args.baseline, "field_components/grid_encodings.py",
+                                             "nerf_backend.field_components._baseline_grid_encodings"
+                                             ).VectorMatrixGrid.forward,
+                  "current": VectorMatrixGrid.forward}
     seconds: dict[str, list[float]] = {name: [] for name in sides}
     images: dict[str, list[np.ndarray]] = {name: [] for name in sides}
     for repeat in range(2):
         for name, march in sides.items():
             marched.render_marched_stopping_early = march
+            VectorMatrixGrid.forward = grid_reads[name]
             for view in views:
                 start = time.perf_counter()
                 image = render_image(model, split.intrinsics, split.poses[view], ray_bounds)
@@ -95,6 +103,7 @@ def main() -> int:
                 if repeat == 0:
                     images[name].append(image.rgb)
     marched.render_marched_stopping_early = sides["current"]
+    VectorMatrixGrid.forward = grid_reads["current"]
     width, height = split.intrinsics.width, split.intrinsics.height
     print(f"{args.run} on {args.dataset}: {width}×{height}, views {views}, {torch.get_num_threads()} threads")
     for name in sides:

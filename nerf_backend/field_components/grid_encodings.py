@@ -16,7 +16,14 @@ the features is trilinear too and its maximum over a cell sits at one of the cel
 corners: the occupancy grid relies on this to be exact (see ``occupancy.py``).
 
 Coordinates are normalised to [-1, 1] (``align_corners=True``: -1 and 1 are the first and
-last grid vertices).
+last grid vertices); a corner outside the grid reads zero (``grid_sample``'s zero padding).
+
+Two kernels read the same grid. On the CPU each plane is read as a table of channel rows
+(``[Na·Nb, C]``) by ``embedding_bag`` with the bilinear weights: one contiguous row a corner
+instead of ``grid_sample``'s ``C`` reads a plane apart, 2.2x faster for rendering and 1.4x
+for a training step's forward and backward (measured on captured render samples; the
+bench's render column shows it). Elsewhere ``grid_sample`` stays: it is one fused kernel on
+CUDA, and MPS lacks ``embedding_bag`` in some of the torch versions users have.
 """
 
 from __future__ import annotations
@@ -58,6 +65,43 @@ class VectorMatrixGrid(nn.Module):
         return 3 * self.channels
 
     def forward(self, x: Tensor) -> Tensor:
+        if x.device.type == "cpu":
+            return self._forward_rows(x)
+        return self._forward_grid_sample(x)
+
+    def _forward_rows(self, x: Tensor) -> Tensor:
+        """``forward`` from channel-row tables (the CPU kernel, see the module's notes)."""
+        planes, lines = self._row_tables()
+        corners = [_axis_corners(x[:, axis], n) for axis, n in enumerate(self.vertices)]
+        outputs = []
+        for ((a, b), c), plane, line in zip(_MODES, planes, lines):
+            (a_lower, a_low_weight, a_high_weight), (b_lower, b_low_weight, b_high_weight) = corners[a], corners[b]
+            width = self.vertices[b]
+            rows = (a_lower * width + b_lower)[:, None] + a_lower.new_tensor([0, 1, width, width + 1])
+            weights = torch.stack([a_low_weight * b_low_weight, a_low_weight * b_high_weight,
+                                   a_high_weight * b_low_weight, a_high_weight * b_high_weight], dim=1)
+            c_lower, c_low_weight, c_high_weight = corners[c]
+            line_features = F.embedding_bag(torch.stack([c_lower, c_lower + 1], dim=1), line, mode="sum",
+                                            per_sample_weights=torch.stack([c_low_weight, c_high_weight], dim=1))
+            plane_features = F.embedding_bag(rows, plane, per_sample_weights=weights, mode="sum")
+            outputs.append(plane_features * line_features)
+        return torch.cat(outputs, dim=1)
+
+    def _row_tables(self) -> tuple[list[Tensor], list[Tensor]]:
+        """Each plane as ``[Na·Nb, C]`` and each line as ``[N, C]``. A copy with gradients in
+        training; without, made once per version of the weights and kept (rendering reads
+        the grid a few hundred times between two weight updates)."""
+        def tables():
+            return ([p[0].permute(1, 2, 0).reshape(-1, self.channels).contiguous() for p in self.planes],
+                    [line[0, :, :, 0].T.contiguous() for line in self.lines])
+        if torch.is_grad_enabled():
+            return tables()
+        key = tuple((p.data_ptr(), p._version, p.dtype, p.shape) for p in [*self.planes, *self.lines])
+        if getattr(self, "_kept_tables", (None,))[0] != key:
+            self._kept_tables = (key, tables())
+        return self._kept_tables[1]
+
+    def _forward_grid_sample(self, x: Tensor) -> Tensor:
         points = x.shape[0]
         outputs = []
         for (plane_axes, line_axis), plane, line in zip(_MODES, self.planes, self.lines):
@@ -102,6 +146,17 @@ class VectorMatrixGrid(nn.Module):
         # (x, z) plane × y line: V[z, y, x] += Σ_c L[c, y] P[c, x, z], one product per z
         volume.baddbmm_(y_line.T.expand(nz, ny, channels), xz.permute(2, 0, 1))
         return volume
+
+
+def _axis_corners(coordinate: Tensor, vertices: int) -> tuple[Tensor, Tensor, Tensor]:
+    """The lower of the two vertices read around each ``coordinate [P]`` in [-1, 1] on an
+    axis of ``vertices`` (kept inside the grid, so both exist) and the weights of the two: the
+    hat function ``max(0, 1 - |position - vertex|)``, which is linear interpolation inside the
+    grid and fades to 0 within a cell outside it, as ``grid_sample``'s zero padding reads it."""
+    position = (coordinate + 1.0) * (0.5 * (vertices - 1))
+    lower = position.detach().floor().clamp(0, vertices - 2)
+    from_lower = position - lower
+    return lower.long(), (1.0 - from_lower.abs()).clamp_min(0.0), (1.0 - (from_lower - 1.0).abs()).clamp_min(0.0)
 
 
 def _as_vertices(vertices: Vertices | int) -> Vertices:
