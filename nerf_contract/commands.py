@@ -19,7 +19,7 @@ from __future__ import annotations
 from typing import Optional, Sequence
 
 BACKEND_MODULE = "nerf_backend"
-TRAIN, RENDER, COMPARE, MESH, REPORT = "train", "render", "compare", "mesh", "report"
+TRAIN, RENDER, COMPARE, MESH, REPORT, EXPORT = "train", "render", "compare", "mesh", "report", "export"
 
 
 class BackendFlag:
@@ -41,6 +41,8 @@ class BackendFlag:
     REFERENCE = "--reference"
     RENDER = "--render"
     RESOLUTION = "--resolution"
+    TRIANGLES = "--triangles"
+    TEXTURE_SIZE = "--texture-size"
 
 
 class GeneratorFlag:

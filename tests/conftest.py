@@ -55,6 +55,15 @@ def trained_run(tiny_demo_dataset, tmp_path_factory) -> Path:
     return run
 
 
+@pytest.fixture(scope="session")
+def trained_surface_run(tiny_demo_dataset, tmp_path_factory) -> Path:
+    """The surface preset trained for 600 steps on the tiny demo dataset (from its prior)."""
+    run = tmp_path_factory.mktemp("runs") / "surface"
+    run_python("-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "surface", "--iters", "600",
+               "--out", str(run), "--no-progress")
+    return run
+
+
 def camera_path_through_test_views(dataset: Path, folder: Path, repeats: int = 1, copy_images: bool = True) -> tuple:
     """A camera path (``folder/camera_path.json``) through the dataset's test views, ``repeats``
     times over, whose 'Cycles' frames are those views' images: scoring it must give ``eval``'s

@@ -133,6 +133,7 @@ LAYERS = {
         ("models",),
         ("configs",),
         ("evaluation",),
+        ("asset",),  # export: a trained surface baked into a glTF asset
         ("training",),
         ("bench",),
         ("commands",),  # one module a command
@@ -215,7 +216,8 @@ def test_imports_are_at_the_top_of_modules(package):
 
 
 # What each third-party module the backend imports is installed as.
-DISTRIBUTIONS = {"PIL": "pillow", "skimage": "scikit-image", "OpenEXR": "OpenEXR", "imageio_ffmpeg": "imageio-ffmpeg"}
+DISTRIBUTIONS = {"PIL": "pillow", "skimage": "scikit-image", "OpenEXR": "OpenEXR", "imageio_ffmpeg": "imageio-ffmpeg",
+                 "fast_simplification": "fast-simplification"}
 
 
 def _requirement_names(lines: list[str]) -> set[str]:

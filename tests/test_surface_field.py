@@ -101,10 +101,8 @@ def test_prior_start_puts_the_surface_within_a_prior_cell_of_the_truth():
     assert outside == pytest.approx(0.9 - radius, abs=2.0 / cells)
 
 
-def test_surface_preset_trains_and_meshes_its_zero_level_set(tiny_demo_dataset, tmp_path):
-    run = tmp_path / "surface"
-    run_python("-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "surface", "--iters", "600",
-               "--out", str(run), "--no-progress")
+def test_surface_preset_trains_and_meshes_its_zero_level_set(trained_surface_run):
+    run = trained_surface_run
     config = json.loads((run / "config.json").read_text())
     assert config["config"]["model"] == "surface"
     assert config["config"]["occupancy_prior"] == "available"

@@ -325,6 +325,14 @@ def load_split(dataset_dir: Path | str, split: str) -> DatasetSplit:
     )
 
 
+def load_split_poses(dataset_dir: Path | str, split: str) -> Tensor:
+    """The camera-to-world poses ``[N, 4, 4]`` of ``transforms_{split}.json``, without its
+    images (what a bake needs: where the views were taken from)."""
+    json_path = _split_json(Path(dataset_dir), split)
+    frames = _frames(_read_json(json_path), json_path)
+    return torch.from_numpy(np.stack([_pose(frame, index, json_path) for index, frame in enumerate(frames)])).float()
+
+
 @dataclass
 class StillCameras:
     """Cameras without images that share one set of intrinsics: what to render (e.g. the

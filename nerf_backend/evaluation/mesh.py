@@ -34,7 +34,7 @@ from ..core.files import write_json
 from ..core.scene_bounds import SceneBounds
 from ..data.dataset import load_scene_profile
 from ..data.run_folder import RunFolder
-from ..model_components.ray_bounds import PROTOCOL_BOX
+from ..model_components.ray_bounds import PROTOCOL_BOX, RayBounds
 from .inference import load_trained_model
 
 DensityFn = Callable[[Tensor], Tensor]
@@ -162,9 +162,15 @@ def run_mesh(run: RunFolder, device: torch.device, resolution: int = 256,
              threshold: float | None = None) -> tuple[Mesh, dict]:
     """The run's latest checkpoint as a mesh in the NeRF frame (the dataset's), and how it was
     extracted: what ``mesh`` writes and ``eval --geometry`` scores."""
+    model, ray_bounds, state = load_trained_model(run, device)
+    return model_mesh(model, ray_bounds, state["iteration"], device, resolution, threshold)
+
+
+def model_mesh(model, ray_bounds: RayBounds, iteration: int, device: torch.device, resolution: int = 256,
+               threshold: float | None = None) -> tuple[Mesh, dict]:
+    """``run_mesh`` of a model already loaded (``load_trained_model``)."""
     if resolution < 8:
         raise NerfError(f"mesh: resolution {resolution}: at least 8 vertices along the box's longest side")
-    model, ray_bounds, state = load_trained_model(run, device)
     box = ray_bounds.box if ray_bounds.box is not None else PROTOCOL_BOX
     render_step = getattr(model, "step", None)  # a marched model's step along each ray
     voxel = max(hi - lo for lo, hi in zip(box.box_min, box.box_max)) / (resolution - 1)
@@ -178,7 +184,7 @@ def run_mesh(run: RunFolder, device: torch.device, resolution: int = 256,
         rule = ("given" if threshold is not None else
                 f"ln 2 / step: the density at which one render step ({render_step or voxel:.5g}) is half opaque")
     return mesh, {
-        "iteration": state["iteration"], "vertices": len(mesh.vertices), "faces": len(mesh.faces),
+        "iteration": iteration, "vertices": len(mesh.vertices), "faces": len(mesh.faces),
         "resolution": resolution, "voxel_size": voxel, "box": {"min": list(box.box_min), "max": list(box.box_max)},
         "threshold": level, "threshold_rule": rule,
     }
