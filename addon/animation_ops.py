@@ -1,5 +1,6 @@
 """Render Camera Animation (the NeRF along the scene camera's animation, beside Cycles' frames),
-its Cancel, and Import NeRF Mesh. The animation runs in other processes like training (a
+its Cancel, Import NeRF Mesh, and Import NeRF Asset (a job: the backend bakes the asset, the
+timer imports it when done) with its Cancel. The animation runs in other processes like training (a
 background Blender renders Cycles' frames, then the backend renders the NeRF's); when it is
 done the video is loaded into an Image Editor and, if asked, into the Video Sequencer."""
 
@@ -11,7 +12,6 @@ from pathlib import Path
 import bpy
 
 from datasets_gen import camera_path_export
-from datasets_gen.blender.compat import node_tree_of
 from datasets_gen.core.options import options_from_keywords, options_to_argv
 from nerf_contract import commands
 from nerf_contract.dataset_layout import CAMERA_PATH_NAME
@@ -19,11 +19,11 @@ from nerf_contract.run_layout import CHECKPOINT_NAME
 
 from . import sources
 from .backend_setup import check_backend
-from .job_timer import animation_job, ensure_timer
+from .job_timer import animation_job, asset_job, ensure_timer
 from .paths import backend_python, dataset_dir, run_dir, settings
 from .results_ops import reporting_backend_errors, run_backend
-
-MESH_MATERIAL = "NeRF mesh vertex colours"
+from .scene_import import import_mesh
+from .training_ops import training_cpu_threads
 
 
 def scene_frames(context) -> range:
@@ -122,34 +122,42 @@ class NERF_OT_import_mesh(bpy.types.Operator):
         return {"FINISHED"}
 
 
-def import_mesh(context, path: Path):
-    """The PLY as a new object (in Blender's world already: the backend undid world_to_nerf)
-    with a material showing its vertex colours."""
-    before = set(bpy.data.objects)
-    bpy.ops.wm.ply_import(filepath=str(path))
-    new = [obj for obj in bpy.data.objects if obj not in before]
-    if len(new) != 1:
-        raise RuntimeError(f"{path}: the PLY importer made {len(new)} objects")
-    obj = new[0]
-    obj.name = "NeRF mesh"
-    attributes = getattr(obj.data, "color_attributes", None)
-    colour = attributes[0].name if attributes else "Col"
-    obj.data.materials.clear()
-    obj.data.materials.append(_vertex_colour_material(colour))
-    return obj
+class NERF_OT_import_asset(bpy.types.Operator):
+    """Bake the trained NeRF into a textured asset (its surface decimated to the triangle budget,
+    its colour in a texture) and add it to the scene over the original; runs in the background"""
+
+    bl_idname = "nerf.import_asset"
+    bl_label = "Import NeRF Asset"
+
+    @reporting_backend_errors
+    def execute(self, context):
+        s = settings(context)
+        python = backend_python(context)
+        ok, message = check_backend(python)
+        if not ok:
+            raise RuntimeError(message)
+        if not (run_dir(context) / CHECKPOINT_NAME).is_file():
+            raise RuntimeError(f"{run_dir(context)}: no trained run yet; train first")
+        job = asset_job(context)
+        if job.is_running():
+            raise RuntimeError("the asset is already being baked")
+        job.start(python, sources.backend_root(), run_dir(context), s.asset_triangles, int(s.asset_texture_size),
+                  device=s.train_device, cpu_threads=training_cpu_threads())
+        ensure_timer()
+        self.report({"INFO"}, f"baking the asset into {job.asset_path}")
+        return {"FINISHED"}
 
 
-def _vertex_colour_material(attribute: str):
-    material = bpy.data.materials.get(MESH_MATERIAL) or bpy.data.materials.new(MESH_MATERIAL)
-    tree = node_tree_of(material)
-    tree.nodes.clear()
-    colour = tree.nodes.new("ShaderNodeVertexColor")
-    colour.layer_name = attribute
-    emission = tree.nodes.new("ShaderNodeEmission")  # the NeRF's colours already hold the scene's lighting
-    output = tree.nodes.new("ShaderNodeOutputMaterial")
-    tree.links.new(colour.outputs["Color"], emission.inputs["Color"])
-    tree.links.new(emission.outputs["Emission"], output.inputs["Surface"])
-    return material
+class NERF_OT_cancel_asset(bpy.types.Operator):
+    """Stop baking the asset (the one baked before, if any, stays)"""
+
+    bl_idname = "nerf.cancel_asset"
+    bl_label = "Cancel"
+
+    def execute(self, context):
+        asset_job(context).cancel()
+        return {"FINISHED"}
 
 
-CLASSES = (NERF_OT_render_animation, NERF_OT_cancel_animation, NERF_OT_import_mesh)
+CLASSES = (NERF_OT_render_animation, NERF_OT_cancel_animation, NERF_OT_import_mesh, NERF_OT_import_asset,
+           NERF_OT_cancel_asset)

@@ -11,8 +11,9 @@ from bpy.app.handlers import persistent
 
 from .backend_setup import BackendSetup
 from .images import PREVIEW_IMAGE, show_animation, show_image
-from .jobs import AnimationJob, DatasetJob, JobStatus, TrainingJob
-from .paths import animation_dir, dataset_dir, run_dir
+from .jobs import AnimationJob, AssetJob, DatasetJob, JobStatus, TrainingJob
+from .paths import animation_dir, asset_dir, dataset_dir, run_dir
+from .scene_import import asset_view_warning, import_asset
 
 _jobs: dict[str, object] = {}  # folder → job (keeps the Popen that started it)
 status: dict[str, JobStatus] = {}  # folder → last polled status, drawn by the panel
@@ -41,6 +42,11 @@ def animation_job(context) -> AnimationJob:
     return _job(animation_dir(context), AnimationJob)
 
 
+def asset_job(context) -> AssetJob:
+    """The job baking the run's asset (``RUN/asset``)."""
+    return _job(asset_dir(context), AssetJob)
+
+
 def backend_setup() -> BackendSetup | None:
     """The last Set Up Backend's job, or None."""
     return _setup
@@ -61,9 +67,11 @@ def poll_jobs() -> bool:
         running = running or status[folder].state == "running"
         if isinstance(job, TrainingJob):
             _refresh_preview(job.preview_path)
-        if isinstance(job, AnimationJob) and status[folder].state == "done" and \
-                previous is not None and previous.state == "running":
+        just_done = status[folder].state == "done" and previous is not None and previous.state == "running"
+        if isinstance(job, AnimationJob) and just_done:
             _show_animation(job, status[folder])
+        if isinstance(job, AssetJob) and just_done:
+            _import_asset(status[folder])
     if _setup is not None:
         status["backend-setup"] = _setup.poll()
         running = running or status["backend-setup"].state == "running"
@@ -89,6 +97,15 @@ def _show_animation(job: AnimationJob, state: JobStatus) -> None:
         state.extra["shown"] = show_animation(context, state.extra["record"], context.scene.nerf.animation_sequencer)
     except (RuntimeError, OSError, KeyError) as exc:  # a video Blender cannot open: said in the panel
         state.warning = f"The video could not be loaded: {exc}"
+
+
+def _import_asset(state: JobStatus) -> None:
+    """A finished export is imported into the scene, once."""
+    try:
+        state.extra["imported"] = import_asset(bpy.context, Path(state.extra["asset"])).name
+        state.warning = asset_view_warning(bpy.context.scene)
+    except (RuntimeError, OSError, KeyError) as exc:  # a file Blender cannot import: said in the panel
+        state.warning = f"The asset could not be imported: {exc}"
 
 
 def _tick():
@@ -119,7 +136,7 @@ def _reattach_on_load(_file) -> None:
     context = bpy.context
     if getattr(context, "scene", None) is None or not hasattr(context.scene, "nerf"):
         return
-    for job in (dataset_job(context), training_job(context), animation_job(context)):
+    for job in (dataset_job(context), training_job(context), animation_job(context), asset_job(context)):
         status[str(job.folder)] = job.poll()
     if any(s.state == "running" for s in status.values()):
         ensure_timer()

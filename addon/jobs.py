@@ -1,5 +1,5 @@
-"""Background jobs the add-on starts and watches: training (the backend's own Python) and
-dataset generation (a background Blender). Plain Python, no bpy and no torch, so tests drive
+"""Background jobs the add-on starts and watches: training and the asset's export (the
+backend's own Python), dataset generation and the animation (a background Blender). Plain Python, no bpy and no torch, so tests drive
 it without Blender; the panel only draws what ``poll()`` returns and calls these methods.
 
 A job is found again from its folder alone (reopening the .blend): ``<folder>.job.json``
@@ -22,7 +22,17 @@ from pathlib import Path
 from datasets_gen.core.options import GeneratorOptions, options_to_argv
 from nerf_contract import commands
 from nerf_contract.dataset_layout import CYCLES_FRAMES_DIR, SPLITS, VIEW_PNG_GLOB, transforms_name
-from nerf_contract.run_layout import ANIMATION_FRAMES_DIR, ANIMATION_RECORD, EVENTS_NAME, PREVIEW_NAME
+from nerf_contract.run_layout import (
+    ANIMATION_FRAMES_DIR,
+    ANIMATION_RECORD,
+    ASSET_COMPLETE,
+    ASSET_NAME,
+    ASSET_RECORD_SUFFIX,
+    ASSET_STAGES,
+    ASSET_STAGES_DONE,
+    EVENTS_NAME,
+    PREVIEW_NAME,
+)
 from nerf_contract.training_events import Checkpoint, Collapse, Done, Error, Start, Train, Val, read_events
 
 LOG_TAIL_LINES = 12
@@ -80,6 +90,12 @@ class _Job:
             return json.loads(self.record_path.read_text())
         except (OSError, json.JSONDecodeError):
             return None
+
+    def _update(self, **fields) -> None:
+        """Add ``fields`` to the job's record."""
+        data = self.record() or {}
+        data.update(fields)
+        self.record_path.write_text(json.dumps(data))
 
     def _launch(self, command: list[str], env: dict[str, str] | None = None, cwd: Path | None = None) -> None:
         if self.is_running():
@@ -275,11 +291,6 @@ class AnimationJob(_Job):
         self._update(stages=stages, stage=0, path=str(path_json), frames=frames, cycles=cycles, env=env or {},
                      cancelled=False)
 
-    def _update(self, **fields) -> None:
-        data = self.record() or {}
-        data.update(fields)
-        self.record_path.write_text(json.dumps(data))
-
     def cancel(self) -> None:
         self._update(cancelled=True)
         super().cancel()
@@ -330,6 +341,62 @@ class AnimationJob(_Job):
             return json.loads(path.read_text())
         except (OSError, json.JSONDecodeError):
             return None
+
+
+class AssetJob(_Job):
+    """``python -m nerf_backend export`` baking the run's asset into ``folder/nerf_asset.glb``
+    (``RUN/asset``), watched through the record the export rewrites after each stage."""
+
+    def __init__(self, folder: Path) -> None:
+        super().__init__(folder)
+
+    @property
+    def asset_path(self) -> Path:
+        return self.folder / ASSET_NAME
+
+    def start(self, python: str, backend_root: Path, run: Path, triangles: int, texture_size: int,
+              device: str = "auto", cpu_threads: int | None = None) -> None:
+        self.folder.mkdir(parents=True, exist_ok=True)
+        command = commands.backend_command(python, commands.export_argv(
+            run, self.asset_path, triangles=triangles, texture_size=texture_size, device=device,
+            cpu_threads=cpu_threads))
+        self._launch(command, env=dict(os.environ, PYTHONPATH=str(backend_root), PYTHONUNBUFFERED="1"))
+        self._update(cancelled=False)
+
+    def cancel(self) -> None:
+        self._update(cancelled=True)
+        super().cancel()
+
+    def _export_record(self, started: float) -> dict | None:
+        """The export's record, if this job's export wrote it (not an earlier one)."""
+        path = self.asset_path.with_name(ASSET_NAME + ASSET_RECORD_SUFFIX)
+        try:
+            if path.stat().st_mtime < started:
+                return None
+            return json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError):  # not yet, or being replaced
+            return None
+
+    def poll(self) -> JobStatus:
+        running = self.is_running()
+        job = self.record()
+        if not job or "started" not in job:
+            return JobStatus("idle")
+        record = self._export_record(job["started"]) or {}
+        finished = bool(record.get(ASSET_COMPLETE))
+        if job.get("cancelled") and not running and not finished:
+            return JobStatus("cancelled", 0.0, "cancelled; the asset before it, if any, is unchanged")
+        failure = self._ended_badly(finished, running)
+        if failure is not None:
+            return failure
+        if finished and not running:
+            detail = (f"{record['triangles']} triangles, {record['texture_size']}² texture, "
+                      f"{record['bytes'] / 1e6:.1f} MB")
+            return JobStatus("done", 1.0, detail, extra={"asset": str(self.asset_path), "record": record})
+        if ASSET_STAGES not in record:  # the export has not written its first record yet
+            return JobStatus("running", 0.0, "Export: starting")
+        done, stages = record[ASSET_STAGES_DONE], record[ASSET_STAGES]
+        return JobStatus("running", done / stages, f"Export: {done} of {stages} stages")
 
 
 def python_in_venv(venv: Path) -> Path:

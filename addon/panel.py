@@ -13,7 +13,7 @@ import bpy
 
 from .images import COMPARISON_IMAGE, PREVIEW_IMAGE
 from .job_timer import status
-from .paths import animation_dir, backend_python, dataset_dir, run_dir, torch_build
+from .paths import animation_dir, asset_dir, backend_python, dataset_dir, run_dir, torch_build
 from .ui_text import draw_text as _text
 from .ui_text import first_fitting
 
@@ -149,9 +149,9 @@ class NERF_PT_results(_NerfPanel, bpy.types.Panel):
 
 
 class NERF_PT_results_animation(_NerfPanel, bpy.types.Panel):
-    """The NeRF along the scene camera's animation, and its surface as a mesh."""
+    """The NeRF along the scene camera's animation, and its surface as a mesh or a baked asset."""
 
-    bl_label = "Animation and Mesh"
+    bl_label = "Animation, Mesh and Asset"
     bl_parent_id = "NERF_PT_results"
 
     def draw(self, context):
@@ -168,6 +168,15 @@ class NERF_PT_results_animation(_NerfPanel, bpy.types.Panel):
         layout.separator()
         layout.prop(s, "mesh_resolution")
         layout.operator("nerf.import_mesh", icon="MESH_DATA")
+        layout.separator()
+        layout.prop(s, "asset_triangles")
+        layout.prop(s, "asset_texture_size")
+        asset = status.get(str(asset_dir(context)))
+        if asset is not None and asset.state == "running":
+            layout.operator("nerf.cancel_asset", icon="CANCEL")
+        else:
+            layout.operator("nerf.import_asset", icon="IMPORT")
+        _draw_status(layout, context, asset, "No asset baked")
 
 
 class NERF_PT_results_comparison(_NerfPanel, bpy.types.Panel):

@@ -9,7 +9,7 @@ from pathlib import Path
 import bpy
 
 from nerf_contract.dataset_layout import safe_name
-from nerf_contract.run_layout import ANIMATIONS_DIR
+from nerf_contract.run_layout import ANIMATIONS_DIR, ASSET_DIR
 
 from .jobs import python_in_venv
 from .torch_builds import PlatformFacts, TorchBuild, choose_build, detect_facts
@@ -33,6 +33,11 @@ def animation_dir(context) -> Path:
     camera = context.scene.camera
     name = safe_name(camera.name if camera is not None else "camera")
     return run_dir(context) / ANIMATIONS_DIR / name
+
+
+def asset_dir(context) -> Path:
+    """Where Import NeRF Asset bakes the run's asset: ``RUN/asset``."""
+    return run_dir(context) / ASSET_DIR
 
 
 def managed_venv() -> Path:

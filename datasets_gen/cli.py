@@ -19,6 +19,7 @@ import sys
 from typing import Any, Callable, NoReturn, Optional, Sequence
 
 from nerf_contract.commands import GeneratorFlag
+from nerf_contract.run_layout import ASSET_ENGINES
 
 from .core.options import (
     DEFAULT_OPTIONS,
@@ -69,6 +70,13 @@ def build_parser() -> argparse.ArgumentParser:
                         help="join the shard JSON files in DIR into the dataset's JSON (no SCENE, no --out)")
     groups[_LONG_RENDERS_GROUP].add_argument(GeneratorFlag.NO_PROGRESS, action="store_true",
                                              help="do not show progress on stderr")
+    asset = parser.add_argument_group("a baked NeRF asset (python -m nerf_backend export), scored like the NeRF")
+    asset.add_argument(GeneratorFlag.RENDER_ASSET, metavar="ASSET.glb",
+                       help="render the asset alone from the test cameras of --dataset, as its views were rendered, "
+                       "into --out DIR/STEM.png (for python -m nerf_backend eval --dataset DATASET --renders DIR)")
+    asset.add_argument(GeneratorFlag.DATASET, metavar="DATASET", help="with --render-asset: the dataset whose cameras")
+    asset.add_argument(GeneratorFlag.ENGINE, choices=ASSET_ENGINES, default=ASSET_ENGINES[0],
+                       help="with --render-asset: the render engine (default: cycles)")
     path = parser.add_argument_group("camera animation (for python -m nerf_backend render RUN --camera-path)")
     path.add_argument(GeneratorFlag.CAMERA_PATH, metavar="CAMERA",
                       help="write CAMERA's animation as a camera path in the NeRF frame of the dataset in --out "
@@ -152,6 +160,10 @@ def main(argv: Optional[Sequence[str]] = None, blender_file: str = "") -> int:
         return _guarded(lambda: _merge(args.merge), args.merge)
     if args.suite is not None:
         return _suite(args, parser)
+    if args.render_asset is not None:
+        return _render_asset(args, parser)
+    if args.dataset is not None:
+        parser.error(f"{GeneratorFlag.DATASET} needs {GeneratorFlag.RENDER_ASSET} ASSET.glb")
     if args.camera_path is None and (args.frames is not None or args.cycles):
         flag = GeneratorFlag.FRAMES if args.frames is not None else GeneratorFlag.WITH_CYCLES
         parser.error(f"argument {flag}: needs {GeneratorFlag.CAMERA_PATH} CAMERA")
@@ -211,6 +223,21 @@ def _camera_path(args: argparse.Namespace, parser: argparse.ArgumentParser, blen
     if not status:
         print(f"{PROG}: wrote {written[0]}", file=sys.stderr)
     return status
+
+
+def _render_asset(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    """--render-asset ASSET.glb --dataset DATASET --out DIR: the asset from the dataset's test cameras."""
+    from .asset_render import render_asset
+
+    extra = [flag for flag, value in (("SCENE.blend", args.blend_path), ("--demo", args.demo),
+                                      ("--builtin", args.builtin), ("--camera-path", args.camera_path)) if value]
+    if extra:
+        parser.error(f"{GeneratorFlag.RENDER_ASSET} takes no {extra[0]}: the asset is rendered alone")
+    if args.dataset is None or args.out_dir is None:
+        parser.error(f"{GeneratorFlag.RENDER_ASSET} needs {GeneratorFlag.DATASET} DATASET and --out DIR")
+    return _guarded(lambda: render_asset(args.render_asset, args.dataset, args.out_dir, args.engine,
+                                         device=args.device or "CPU", progress=not args.no_progress), args.out_dir,
+                    quiet=True)
 
 
 def _merge(out_dir: str) -> None:

@@ -52,6 +52,9 @@ class GeneratorFlag:
     FRAMES = "--frames"
     WITH_CYCLES = "--with-cycles"
     NO_PROGRESS = "--no-progress"
+    RENDER_ASSET = "--render-asset"
+    DATASET = "--dataset"
+    ENGINE = "--engine"
 
 
 def backend_command(python: str, argv: Sequence[str]) -> list[str]:
@@ -104,9 +107,24 @@ def mesh_argv(run: str, out: str, *, resolution: int, device: str, overwrite: bo
     return argv + ([BackendFlag.OVERWRITE] if overwrite else [])
 
 
+def export_argv(run: str, out: str, *, triangles: int, texture_size: int, device: str,
+                cpu_threads: Optional[int] = None) -> list[str]:
+    """Bake the run's surface into the asset ``out`` (glTF binary), replacing an earlier one."""
+    argv = [EXPORT, str(run), BackendFlag.OUT, str(out), BackendFlag.TRIANGLES, str(triangles),
+            BackendFlag.TEXTURE_SIZE, str(texture_size), BackendFlag.DEVICE, device, BackendFlag.NO_PROGRESS,
+            BackendFlag.OVERWRITE]
+    return argv + ([BackendFlag.CPU_THREADS, str(cpu_threads)] if cpu_threads else [])
+
+
 def report_argv(run: str) -> list[str]:
     """Write the run's comparison page, ``RUN/report/index.html``."""
     return [REPORT, str(run)]
+
+
+def render_asset_argv(asset: str, dataset: str, out: str, engine: str) -> list[str]:
+    """The generator rendering a baked asset from the dataset's test cameras into ``out``."""
+    return [GeneratorFlag.RENDER_ASSET, str(asset), GeneratorFlag.DATASET, str(dataset), "--out", str(out),
+            GeneratorFlag.ENGINE, engine, GeneratorFlag.NO_PROGRESS]
 
 
 def blender_script_command(blender: str, scene: str, script: str, argv: Sequence[str]) -> list[str]:

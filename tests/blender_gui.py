@@ -85,6 +85,11 @@ def mounted(root: Path, same_paths: tuple[Path, ...] = (), host: bool = False) -
     """The chroot's /proc, /sys and /dev; each of ``same_paths`` at its own path inside; with
     ``host``, the host's root at /host (with its own /proc and /dev). Unmounted on exit."""
     points: list[Path] = []
+    # A run killed before its cleanup (Ctrl+C twice, a timeout) leaves its mounts: lift them
+    # first, deepest first, or every mount below fails with "already mounted".
+    for stale in sorted(mount_points_under(root), key=lambda p: len(p.parts), reverse=True):
+        if stale != root.resolve():
+            subprocess.run(["umount", "-l", str(stale)], capture_output=True)
 
     def mount(target: Path, *options: str) -> None:
         target.mkdir(parents=True, exist_ok=True)

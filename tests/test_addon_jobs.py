@@ -1,7 +1,7 @@
 """The add-on's job handling, driven without Blender: a real backend training subprocess
 started, followed, cancelled, resumed and killed; a real background Blender rendering a
-dataset; a camera animation's two stages chained, cancelled and resumed; the backend set-up
-failing clearly."""
+dataset; a camera animation's two stages chained, cancelled and resumed; a real export of the
+asset followed stage by stage, cancelled and failing clearly; the backend set-up failing clearly."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import pytest
 from conftest import REPO_ROOT, SHARED_DIR, camera_path_through_test_views
 
 from addon.backend_setup import BackendSetup, check_backend
-from addon.jobs import AnimationJob, DatasetJob, TrainingJob
+from addon.jobs import AnimationJob, AssetJob, DatasetJob, TrainingJob
 from addon.torch_builds import TorchBuild
 from datasets_gen.core.options import options_from_keywords
 
@@ -144,6 +144,49 @@ def test_animation_job_reports_the_backends_error(tmp_path):
 # torch from this machine's pip settings (PyPI and the CPU wheel on disk): the build chooser's own
 # indexes are tested in test_torch_builds.py without downloading a GPU build.
 THIS_MACHINES_PIP = TorchBuild("pypi", None, "cpu", "about 0.2 GB", "this machine's pip settings")
+
+
+def test_asset_job_follows_the_export_stage_by_stage_and_cancels(trained_surface_run, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(trained_surface_run, run)
+    job = AssetJob(run / "asset")
+    assert job.poll().state == "idle"
+    job.start(sys.executable, REPO_ROOT, run, triangles=2000, texture_size=256, device="cpu")
+    states = []
+    while job.is_running():
+        states.append(job.poll())
+        time.sleep(0.05)
+    done = job.poll()
+    assert done.state == "done", done
+    assert done.extra["record"]["triangles"] <= 2000 and Path(done.extra["asset"]).is_file()
+    assert done.detail.startswith(f"{done.extra['record']['triangles']} triangles, 256² texture")
+    # Followed through the record the export rewrites after each stage (its first stage, the
+    # surface, takes most of a second: seen at least at 0 of 6).
+    running = [s for s in states if s.state == "running"]
+    assert running and all(s.detail.startswith("Export: ") for s in running)
+    fractions = [s.fraction for s in running]
+    assert fractions == sorted(fractions) and fractions[0] < 1
+
+    # Blender reopened: a new job object finds the finished asset from its folder alone.
+    assert AssetJob(run / "asset").poll().state == "done"
+
+    again = AssetJob(run / "asset")
+    again.start(sys.executable, REPO_ROOT, run, triangles=2000, texture_size=256, device="cpu")
+    again.cancel()
+    again.wait(60)
+    cancelled = again.poll()
+    assert cancelled.state == "cancelled" and "unchanged" in cancelled.detail
+    assert Path(done.extra["asset"]).stat().st_size == done.extra["record"]["bytes"]  # the earlier asset is intact
+
+
+def test_asset_job_reports_the_backends_error(tmp_path):
+    run = tmp_path / "not_a_run"
+    run.mkdir()
+    job = AssetJob(run / "asset")
+    job.start(sys.executable, REPO_ROOT, run, triangles=2000, texture_size=256, device="cpu")
+    job.wait(60)
+    failed = job.poll()
+    assert failed.state == "failed" and "config.json" in failed.error and "exited with code 2" in failed.error
 
 
 def test_backend_check_names_what_the_python_has():

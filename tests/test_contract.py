@@ -41,6 +41,11 @@ def test_render_compare_mesh_and_report_command_lines_parse_as_asked():
         ("compare", "cycles.png", "nerf.png", "out")
     mesh = _backend(commands.mesh_argv("run", "m.ply", resolution=64, device="cpu", overwrite=True))
     assert (mesh.command, mesh.resolution, mesh.device, mesh.overwrite) == ("mesh", 64, "cpu", True)
+    asset = _backend(commands.export_argv("run", "a.glb", triangles=20000, texture_size=1024, device="cpu",
+                                          cpu_threads=1))
+    assert (asset.command, str(asset.out), asset.triangles, asset.texture_size, asset.device, asset.cpu_threads) == \
+        ("export", "a.glb", 20000, 1024, "cpu", 1)
+    assert asset.overwrite and asset.no_progress
     report = _backend(commands.report_argv("run"))
     assert (report.command, [str(r) for r in report.results]) == ("report", ["run"])
 

@@ -11,6 +11,15 @@ from typing import Any, Sequence
 import bpy
 
 
+def set_eevee(scene: "bpy.types.Scene", journal: Any) -> None:
+    """Make EEVEE the scene's engine: ``BLENDER_EEVEE`` (5.x, and before 4.2), ``BLENDER_EEVEE_NEXT``
+    (4.2-4.5)."""
+    try:
+        journal.set(scene.render, "engine", "BLENDER_EEVEE")
+    except TypeError:
+        journal.set(scene.render, "engine", "BLENDER_EEVEE_NEXT")
+
+
 def node_tree_of(block: Any) -> "bpy.types.NodeTree":
     """The shader node tree of a material or world, creating it where Blender < 5 needs `use_nodes`.
 

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import torch
 
+from nerf_contract.run_layout import ASSET_COMPLETE, ASSET_RECORD_SUFFIX, ASSET_STAGES, ASSET_STAGES_DONE
+
 from ..core.errors import NerfError
 from ..core.files import write_json
 from ..core.progress import Progress
@@ -30,9 +32,13 @@ MIN_TEXTURE_SIZE, MAX_TEXTURE_SIZE = 64, 8192
 ASSET_SUFFIX = ".glb"
 
 
+STAGES = ("surface", "decimate", "unwrap", "rasterise", "bake", "write")
+
+
 def record_path(asset: Path) -> Path:
-    """``ASSET.glb.json``: what ``export`` made, beside the asset."""
-    return asset.with_name(asset.name + ".json")
+    """``ASSET.glb.json``: what ``export`` made, beside the asset (and, while it works, how far
+    it got: nerf_contract.run_layout)."""
+    return asset.with_name(asset.name + ASSET_RECORD_SUFFIX)
 
 
 def export_run(run: RunFolder, out: Path, device: torch.device, triangles: int = DEFAULT_TRIANGLES,
@@ -49,12 +55,18 @@ def export_run(run: RunFolder, out: Path, device: torch.device, triangles: int =
     dataset = run.read_config()["dataset"]
     poses = load_split_poses(dataset, "train")  # read first: a dataset moved away fails before the work
     seconds: dict[str, float] = {}
-    bar = Progress(total=6, description="export", unit="stage", enabled=progress)
+    bar = Progress(total=len(STAGES), description="export", unit="stage", enabled=progress)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_json(record_path(out), {"asset": str(out), ASSET_STAGES_DONE: 0, ASSET_STAGES: len(STAGES),
+                                  ASSET_COMPLETE: False})
 
     def stage(name: str, start: float) -> float:
         seconds[name] = round(time.perf_counter() - start, 3)
         bar.update(1)
         bar.set_postfix(done=name)
+        if name != STAGES[-1]:
+            write_json(record_path(out), {"asset": str(out), ASSET_STAGES_DONE: len(seconds), ASSET_STAGES: len(STAGES),
+                                          ASSET_COMPLETE: False, "seconds": seconds})
         return time.perf_counter()
 
     now = time.perf_counter()
@@ -76,7 +88,6 @@ def export_run(run: RunFolder, out: Path, device: torch.device, triangles: int =
     profile = load_scene_profile(dataset)
     world = to_blender_world(Mesh(atlas_vertices, atlas.faces, atlas_normals, torch.zeros(0, 3)),
                              profile.get("world_to_nerf") if profile else None)
-    out.parent.mkdir(parents=True, exist_ok=True)
     size = write_glb(out, world.vertices, world.normals, atlas.uv, atlas.faces, texture, out.stem)
     stage("write", now)
     bar.close()
@@ -88,7 +99,8 @@ def export_run(run: RunFolder, out: Path, device: torch.device, triangles: int =
                  "views facing it most squarely (cosine-weighted): view-dependent colour bakes to that average; "
                  "unlit material (KHR_materials_unlit), the lighting is in the texture"),
         "frame": "Blender world (the inverse of the dataset's world_to_nerf), written glTF Y-up",
-        "surface": how, "seconds": seconds,
+        "surface": how, "seconds": seconds, ASSET_STAGES_DONE: len(STAGES), ASSET_STAGES: len(STAGES),
+        ASSET_COMPLETE: True,
     }
     write_json(record_path(out), record)
     return record

@@ -1,10 +1,12 @@
 """What several commands' parsers share: number types that refuse bad values in one line, and
-the device, seed and LPIPS arguments."""
+the device, CPU threads, seed and LPIPS arguments."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+import torch
 
 from nerf_contract.commands import BackendFlag
 
@@ -31,6 +33,18 @@ def positive_float(text: str) -> float:
 
 def add_device(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(BackendFlag.DEVICE, default="auto", choices=DEVICES, help=DEVICE_HELP)
+
+
+def add_cpu_threads(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(BackendFlag.CPU_THREADS, type=positive_int, default=None, metavar="N",
+                        help="threads for work on the CPU (default: one per core); the add-on leaves Blender a core, "
+                             "since torch slows about 3x when another program takes one of the cores it uses")
+
+
+def use_cpu_threads(args: argparse.Namespace) -> None:
+    """Apply ``add_cpu_threads``' choice before any work."""
+    if args.cpu_threads is not None:
+        torch.set_num_threads(args.cpu_threads)
 
 
 def add_seed(parser: argparse.ArgumentParser) -> None:

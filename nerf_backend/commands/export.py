@@ -11,7 +11,7 @@ from nerf_contract.commands import EXPORT, BackendFlag
 from ..asset.export import DEFAULT_TEXTURE_SIZE, DEFAULT_TRIANGLES, export_run
 from ..core.devices import resolve_device
 from ..data.run_folder import RunFolder
-from .arguments import add_device, positive_float, positive_int
+from .arguments import add_cpu_threads, add_device, positive_float, positive_int, use_cpu_threads
 
 NAME = EXPORT
 HELP = "bake the trained surface and its colour into a textured glTF asset (ASSET.glb) that Blender imports"
@@ -29,11 +29,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threshold", type=positive_float, default=None,
                         help="surface density, as mesh --threshold takes it (default: mesh's rule)")
     add_device(parser)
+    add_cpu_threads(parser)
     parser.add_argument(BackendFlag.NO_PROGRESS, action="store_true", help="no progress bar")
     parser.add_argument(BackendFlag.OVERWRITE, action="store_true", help="replace an existing asset")
 
 
 def run(args: argparse.Namespace) -> int:
+    use_cpu_threads(args)
     record = export_run(RunFolder(args.run), args.out, resolve_device(args.device), args.triangles,
                         args.texture_size, args.resolution, args.threshold, overwrite=args.overwrite,
                         progress=not args.no_progress)

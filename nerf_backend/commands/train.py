@@ -6,14 +6,12 @@ import argparse
 import sys
 from pathlib import Path
 
-import torch
-
 from nerf_contract.commands import TRAIN, BackendFlag
 from nerf_contract.run_layout import EVENTS_NAME
 
 from ..configs.presets import DEFAULT_PRESET, PRESETS
 from ..training.trainer import TrainOptions, train
-from .arguments import add_device, add_seed, positive_float, positive_int
+from .arguments import add_cpu_threads, add_device, add_seed, positive_float, positive_int, use_cpu_threads
 
 NAME = TRAIN
 HELP = "train a NeRF on a dataset in the nerf_synthetic layout"
@@ -38,14 +36,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(BackendFlag.RESUME, action="store_true", help="continue the run in --out from its checkpoint")
     parser.add_argument(BackendFlag.OVERWRITE, action="store_true", help="replace an existing run folder")
     parser.add_argument(BackendFlag.NO_PROGRESS, action="store_true", help="no progress bar")
-    parser.add_argument(BackendFlag.CPU_THREADS, type=positive_int, default=None, metavar="N",
-                        help="threads for work on the CPU (default: one per core); the add-on leaves Blender a core, "
-                             "since torch slows about 3x when another program takes one of the cores it uses")
+    add_cpu_threads(parser)
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.cpu_threads is not None:
-        torch.set_num_threads(args.cpu_threads)
+    use_cpu_threads(args)
     summary = train(TrainOptions(
         dataset=args.dataset, run=args.out, preset=args.preset, iterations=args.iters,
         max_seconds=args.max_seconds, seed=args.seed, overrides=tuple(args.overrides), device=args.device,

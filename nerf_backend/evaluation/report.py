@@ -5,7 +5,9 @@ Cycles ground truth.
 external scripts or styles): the headline metrics and what the run cost, the scene
 decisions ``auto`` made, every test view (ground truth, render, error heatmap, metrics;
 sortable, worst first; click a picture for full size), the training curves, the geometry
-scores when ``eval --geometry`` measured the run, and the bench results when the run sits
+scores when ``eval --geometry`` measured the run, its camera animations, its baked asset as
+Blender renders it (``export``, ``datasets_gen --render-asset``, ``eval --renders``) beside the
+NeRF, and the bench results when the run sits
 inside a bench folder. ``report A B ...`` compares several
 results on the same dataset: metrics side by side and the same views from each. A result
 is a run folder, or a folder of another tool's renders scored by
@@ -23,6 +25,13 @@ from pathlib import Path
 from nerf_contract.run_layout import (
     ANIMATION_RECORD,
     ANIMATIONS_DIR,
+    ASSET_COMPLETE,
+    ASSET_DIR,
+    ASSET_ENGINES,
+    ASSET_NAME,
+    ASSET_RECORD_SUFFIX,
+    ASSET_RENDER_RECORD,
+    ASSET_RENDERS_DIR,
     CONFIG_NAME,
     METRICS_NAME,
     REPORT_DIR,
@@ -287,6 +296,71 @@ def _animation_sections(page: ReportPage, run: Path, prefix: str) -> str:
     return "\n".join(out)
 
 
+ASSET_VIEWS = 3
+
+
+def _asset_section(page: ReportPage, result: Result, prefix: str, split) -> str:
+    """The run's baked asset (``export``), rendered by Blender from the test cameras (``datasets_gen
+    --render-asset``) and scored (``eval --renders``): the trade table against the NeRF itself, and
+    Cycles, the NeRF and the asset side by side on the asset's worst views."""
+    folder = result.path / ASSET_DIR
+    try:
+        record = json.loads((folder / (ASSET_NAME + ASSET_RECORD_SUFFIX)).read_text())
+    except (OSError, ValueError):
+        return ""
+    if not record.get(ASSET_COMPLETE):
+        return ""
+    scored = {}
+    for engine in ASSET_ENGINES:
+        renders = folder / ASSET_RENDERS_DIR / engine
+        try:
+            scored[engine] = (renders, json.loads((renders / METRICS_NAME).read_text()),
+                              json.loads((renders / ASSET_RENDER_RECORD).read_text()))
+        except (OSError, ValueError):
+            continue
+    size = f"{record['texture_size']}²"
+    out = ["<h3>The baked asset in Blender's renders</h3>",
+           '<table><tr><th>rendered by</th><th class="num">triangles</th><th class="num">texture</th>'
+           f'<th class="num">file MB</th>{_metric_headers()}<th class="num">s a view</th></tr>',
+           f"<tr><td>the NeRF itself (volume rendering)</td><td class=num>—</td><td class=num>—</td>"
+           f"<td class=num>—</td>{_metric_cells(result.metrics)}<td class=num>—</td></tr>"]
+    for engine, (_, metrics, render) in scored.items():
+        out.append(f"<tr><td>the asset, {html.escape(render['render_engine'])} (Blender {html.escape(render['blender_version'])})"
+                   f"</td><td class=num>{record['triangles']:,}</td><td class=num>{size}</td>"
+                   f"<td class=num>{record['bytes'] / 1e6:.2f}</td>{_metric_cells(metrics)}"
+                   f"<td class=num>{render['seconds'] / max(1, render['views']):.2f}</td></tr>")
+    out.append("</table>")
+    notes = [f"{ASSET_NAME}: {record['triangles']:,} triangles of the surface's {record['surface_triangles']:,} "
+             f"(budget {record['triangle_budget']:,}), a {size} texture ({record['texels_covered']:.0%} of its texels "
+             f"covered); {record['bake']}.",
+             "Viewport frame rate: not measured in a headless session."]
+    if not scored:
+        notes.append("Not rendered yet: python -m datasets_gen --render-asset ASSET.glb --dataset DATASET "
+                     "--out RUN/asset/renders/cycles, then python -m nerf_backend eval --dataset DATASET --renders "
+                     "that folder.")
+    out.append("".join(f'<p class="muted">{html.escape(n)}</p>' for n in notes))
+    if scored:
+        first_engine, (first_renders, first_metrics, _) = next(iter(scored.items()))
+        worst = sorted(first_metrics["per_view"], key=lambda v: v["psnr"])[:ASSET_VIEWS]
+        stems = [p.stem for p in split.image_paths]
+        out.append(f"<table><tr><th>Cycles (ground truth)</th><th>NeRF</th>"
+                   + "".join(f"<th>asset, {engine}</th>" for engine in scored) + "</tr>")
+        for view in worst:
+            stem = view["view"]
+            cells = [page.figure(page.image(f"gt_{stem}.png", pixels=split.rgb_on_white(stems.index(stem)).numpy()),
+                                 f"{stem}: Cycles"),
+                     page.figure(page.image(f"{prefix}_{stem}.png", source=result.renders_dir / f"{stem}.png"),
+                                 f"NeRF: {result.by_view[stem]['psnr']:.2f} dB")]
+            for engine, (renders, metrics, _) in scored.items():
+                psnr = next(v["psnr"] for v in metrics["per_view"] if v["view"] == stem)
+                cells.append(page.figure(page.image(f"{prefix}_asset_{engine}_{stem}.png",
+                                                    pixels=read_rgb(renders / f"{stem}.png")),
+                                         f"asset, {engine}: {psnr:.2f} dB"))
+            out.append("<tr>" + "".join(f"<td>{cell}</td>" for cell in cells) + "</tr>")
+        out.append("</table>")
+    return "\n".join(out)
+
+
 def _comparison(page: ReportPage, results: list[Result], split) -> str:
     out = ["<h2>Runs compared</h2>", '<table><tr><th>result</th><th>preset</th><th class="num">iterations</th>'
            f'<th class="num">training s</th>{_metric_headers()}'
@@ -366,6 +440,7 @@ def write_report(paths: list[Path], out_dir: Path | None = None, split: str = "t
             page.add(_geometry_section(page, result.path, f"r{k}"))
         if result.run_config is not None:
             page.add(_animation_sections(page, result.path, f"r{k}"))
+            page.add(_asset_section(page, result, f"r{k}", dataset_split))
         bench = _find_bench(result.path) if result.run_config is not None else None
         if bench is not None:
             page.add(_bench_section(page, bench))

@@ -235,6 +235,61 @@ if nerf_mesh is not None:
                           material_nodes=sorted(n.bl_idname for n in material.node_tree.nodes) if material else [])
 save()
 
+# The NeRF baked into an asset (a job), imported over the original, rendered with F12 by Cycles
+# and EEVEE from the active camera beside the originals' own Cycles render.
+settings.asset_triangles, settings.asset_texture_size = 5000, "512"
+report["asset"] = {"result": sorted(bpy.ops.nerf.import_asset()), "states": []}
+folder = str(paths.asset_dir(bpy.context))
+deadline = time.time() + 600
+while time.time() < deadline:
+    again = job_timer._tick()
+    state = job_timer.status[folder]
+    report["asset"]["states"].append([state.state, round(state.fraction, 3), state.detail])
+    if again is None:
+        break
+    time.sleep(again)
+report["asset"]["final"] = {"state": state.state, "detail": state.detail, "error": state.error,
+                            "warning": state.warning, "imported": state.extra.get("imported")}
+asset = bpy.data.objects.get(report["asset"]["final"]["imported"] or "")
+if asset is not None:
+    material = asset.active_material
+    images = [n.image for n in material.node_tree.nodes if n.type == "TEX_IMAGE" and n.image] if material else []
+    report["asset"].update(bounds_truth=world_bounds(originals), bounds_asset=world_bounds([asset]),
+                           triangles=sum(len(p.vertices) - 2 for p in asset.data.polygons),
+                           material_nodes=sorted(n.type for n in material.node_tree.nodes) if material else [],
+                           texture=list(images[0].size) if images else None)
+
+    def f12(engine: str, shown: list, view_transform: str, stem: str) -> str:
+        """The scene rendered by ``engine`` with only ``shown`` visible, on a transparent film."""
+        hidden = {obj.name: obj.hide_render for obj in scene.objects}
+        for obj in scene.objects:
+            if obj.type == "MESH":
+                obj.hide_render = obj not in shown
+        try:
+            scene.render.engine = engine
+        except TypeError:  # EEVEE is BLENDER_EEVEE_NEXT in 4.2-4.5
+            scene.render.engine = "BLENDER_EEVEE_NEXT"
+        if engine == "CYCLES":
+            scene.cycles.samples, scene.cycles.device = 16, "CPU"
+        scene.render.film_transparent, scene.view_settings.view_transform = True, view_transform
+        scene.render.use_sequencer = False  # the animation's video strip, added above, would be rendered instead
+        scene.render.filepath = str(WORK / f"f12_{stem}.png")
+        result = sorted(bpy.ops.render.render(write_still=True))
+        for obj in scene.objects:
+            obj.hide_render = hidden[obj.name]
+        return [result[0], scene.render.filepath]
+
+    view_transform = scene.view_settings.view_transform  # the scene's own (A.blend: Filmic)
+    # The dataset was rendered with the Standard view (the generator's colour management), and
+    # the texture holds its images' colours: both shown through Standard.
+    report["asset"]["f12"] = {
+        "truth": f12("CYCLES", originals, "Standard", "truth"),
+        "cycles": f12("CYCLES", [asset], "Standard", "asset_cycles"),
+        "eevee": f12("BLENDER_EEVEE", [asset], "Standard", "asset_eevee"),
+    }
+    scene.view_settings.view_transform = view_transform
+save()
+
 # The report, written by the backend and opened (where there is a browser; none here).
 report["open_report"] = {"result": sorted(bpy.ops.nerf.open_report()),
                          "page": (WORK / "run" / "report" / "index.html").is_file()}

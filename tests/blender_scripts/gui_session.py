@@ -431,7 +431,47 @@ def flow():
     report["mesh"] = {"vertices": len(mesh.data.vertices), "material": mesh.active_material.name,
                       "bounds": [list(mesh.matrix_world @ mathutils.Vector(corner)) for corner in mesh.bound_box]}
     yield from shot("13_mesh")
+
+    # The NeRF baked into an asset (a job with its bar), imported over the cube and drawn in the
+    # viewport with its texture (Material Preview), the cube and the mesh hidden.
+    _, area, _ = view3d()
+    area.spaces.active.shading.type = "MATERIAL"
+    for obj in (bpy.data.objects["Cube"], mesh):
+        obj.hide_set(True)
+    yield 1.0
+    empty_view = viewport_pixels()
+    settings.asset_triangles, settings.asset_texture_size = 2000, "512"
+    folder = str(WORK / "run" / "asset")
+    yield from press("nerf.import_asset", None)
+    yield from wait(lambda: state_of(folder) not in (None, "idle"), 120, "the asset job to start")
+    report["asset_progress"] = []
+    for _ in range(1200):
+        status = job(folder)
+        if status is not None and status.state == "running":
+            report["asset_progress"].append([status.fraction, status.detail])
+        if status is not None and status.state != "running":
+            break
+        yield 0.1
+    yield from wait(lambda: "NeRF asset" in bpy.data.objects, 60, "the asset to be imported")
+    yield 2.0  # Material Preview compiles the new material's shader
+    status, asset = job(folder), bpy.data.objects["NeRF asset"]
+    yield from shot("14_asset")
+    shown_view = viewport_pixels()
+    report["asset"] = {"state": status.state, "detail": status.detail, "error": status.error,
+                       "triangles": sum(len(p.vertices) - 2 for p in asset.data.polygons),
+                       "bounds": [list(asset.matrix_world @ mathutils.Vector(corner)) for corner in asset.bound_box],
+                       "viewport_changed": float((np.abs(shown_view - empty_view).max(axis=2) > 0.05).mean())}
     log("flow finished")
+
+
+def viewport_pixels() -> np.ndarray:
+    """The 3D viewport's own pixels (its WINDOW region) in a fresh screenshot."""
+    redraw()
+    screen = grab(SHOTS / "viewport.png")
+    _, area, _ = view3d()
+    region = next(r for r in area.regions if r.type == "WINDOW")
+    ox, oy = window_origin(screen)
+    return screen[oy + region.y:oy + region.y + region.height, ox + region.x:ox + region.x + region.width]
 
 
 def _editor_image() -> str | None:
