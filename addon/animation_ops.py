@@ -26,6 +26,18 @@ from .scene_import import import_mesh
 from .training_ops import training_cpu_threads
 
 
+def trained_run_backend(context) -> str:
+    """The backend's Python, once it is set up and the run has a checkpoint (RuntimeError, said
+    to the user, otherwise)."""
+    python = backend_python(context)
+    ok, message = check_backend(python)
+    if not ok:
+        raise RuntimeError(message)
+    if not (run_dir(context) / CHECKPOINT_NAME).is_file():
+        raise RuntimeError(f"{run_dir(context)}: no trained run yet; train first")
+    return python
+
+
 def scene_frames(context) -> range:
     scene = context.scene
     return range(scene.frame_start, scene.frame_end + 1, max(1, settings(context).animation_step))
@@ -41,12 +53,7 @@ class NERF_OT_render_animation(bpy.types.Operator):
     @reporting_backend_errors
     def execute(self, context):
         s, scene = settings(context), context.scene
-        python = backend_python(context)
-        ok, message = check_backend(python)
-        if not ok:
-            raise RuntimeError(message)
-        if not (run_dir(context) / CHECKPOINT_NAME).is_file():
-            raise RuntimeError(f"{run_dir(context)}: no trained run yet; train first")
+        python = trained_run_backend(context)
         if scene.camera is None or scene.camera.type != "CAMERA":
             raise RuntimeError("the scene needs an active camera: its animation is what is rendered")
         job = animation_job(context)
@@ -132,12 +139,7 @@ class NERF_OT_import_asset(bpy.types.Operator):
     @reporting_backend_errors
     def execute(self, context):
         s = settings(context)
-        python = backend_python(context)
-        ok, message = check_backend(python)
-        if not ok:
-            raise RuntimeError(message)
-        if not (run_dir(context) / CHECKPOINT_NAME).is_file():
-            raise RuntimeError(f"{run_dir(context)}: no trained run yet; train first")
+        python = trained_run_backend(context)
         job = asset_job(context)
         if job.is_running():
             raise RuntimeError("the asset is already being baked")

@@ -43,6 +43,16 @@ def _draw_status(layout, context, state, idle_text: str) -> None:
         _text(layout.box(), context, state.warning, icon="ERROR", limit=6)
 
 
+def _draw_job(layout, context, folder, start: tuple[str, str], cancel: str, idle_text: str) -> None:
+    """A background job's button (``start``: operator and icon; ``cancel`` while it runs) and its status."""
+    state = status.get(str(folder))
+    if state is not None and state.state == "running":
+        layout.operator(cancel, icon="CANCEL")
+    else:
+        layout.operator(start[0], icon=start[1])
+    _draw_status(layout, context, state, idle_text)
+
+
 def _value_row(layout, label: str, value: str) -> None:
     """A read-only value in the property-split layout: label right-aligned left, value right."""
     split = layout.split(factor=0.4)
@@ -159,24 +169,16 @@ class NERF_PT_results_animation(_NerfPanel, bpy.types.Panel):
         layout.prop(s, "animation_step")
         layout.prop(s, "animation_cycles")
         layout.prop(s, "animation_sequencer")
-        state = status.get(str(animation_dir(context)))
-        if state is not None and state.state == "running":
-            layout.operator("nerf.cancel_animation", icon="CANCEL")
-        else:
-            layout.operator("nerf.render_animation", icon="RENDER_ANIMATION")
-        _draw_status(layout, context, state, "No animation rendered")
+        _draw_job(layout, context, animation_dir(context), ("nerf.render_animation", "RENDER_ANIMATION"),
+                  "nerf.cancel_animation", "No animation rendered")
         layout.separator()
         layout.prop(s, "mesh_resolution")
         layout.operator("nerf.import_mesh", icon="MESH_DATA")
         layout.separator()
         layout.prop(s, "asset_triangles")
         layout.prop(s, "asset_texture_size")
-        asset = status.get(str(asset_dir(context)))
-        if asset is not None and asset.state == "running":
-            layout.operator("nerf.cancel_asset", icon="CANCEL")
-        else:
-            layout.operator("nerf.import_asset", icon="IMPORT")
-        _draw_status(layout, context, asset, "No asset baked")
+        _draw_job(layout, context, asset_dir(context), ("nerf.import_asset", "IMPORT"), "nerf.cancel_asset",
+                  "No asset baked")
 
 
 class NERF_PT_results_comparison(_NerfPanel, bpy.types.Panel):

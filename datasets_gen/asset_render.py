@@ -17,28 +17,13 @@ import os
 import time
 from typing import Any
 
-from nerf_contract.dataset_layout import transforms_name
 from nerf_contract.run_layout import ASSET_ENGINES, ASSET_RENDER_RECORD
 
 from .core.frame_fit import Similarity
 from .core.intrinsics import CameraSettings
 from .core.options import DatasetGenError
 from .core.progress import ViewProgress
-
-def _split_record(dataset_dir: str, split: str) -> dict[str, Any]:
-    path = os.path.join(dataset_dir, transforms_name(split))
-    try:
-        with open(path, encoding="utf-8") as handle:
-            document = json.load(handle)
-    except FileNotFoundError:
-        raise DatasetGenError(f"{path}: not found; --render-asset renders the cameras of a dataset written by "
-                              "datasets_gen") from None
-    except (OSError, ValueError) as error:
-        raise DatasetGenError(f"{path}: cannot read the dataset's JSON ({error})") from None
-    for key in ("world_to_nerf", "generator", "frames"):
-        if key not in document:
-            raise DatasetGenError(f"{path}: has no {key!r}; was the dataset written by datasets_gen?")
-    return document
+from .io.split_document import read_split_document
 
 
 def dataset_camera(generator: dict[str, Any]) -> CameraSettings:
@@ -65,7 +50,8 @@ def render_asset(asset: str, dataset_dir: str, out_dir: str, engine: str = "cycl
         raise DatasetGenError(f"--engine {engine}: one of {', '.join(ASSET_ENGINES)}")
     if not os.path.isfile(asset):
         raise DatasetGenError(f"{asset}: no such asset (python -m nerf_backend export RUN --out ASSET.glb makes one)")
-    record = _split_record(dataset_dir, split)
+    record = read_split_document(dataset_dir, split, ("world_to_nerf", "generator", "frames"),
+                                 "--render-asset renders the cameras of a dataset written by datasets_gen")
     import bpy
 
     from .blender.compat import set_eevee

@@ -15,27 +15,19 @@ import os
 import shutil
 from typing import Any, Optional, Sequence
 
-from nerf_contract.dataset_layout import CAMERA_PATH_NAME, CYCLES_FRAMES_DIR, camera_path_folder, transforms_name
+from nerf_contract.dataset_layout import CAMERA_PATH_NAME, CYCLES_FRAMES_DIR, camera_path_folder
 
 from .core.camera_path import camera_path_document, parse_frames
 from .core.options import DatasetGenError, GeneratorOptions
 from .io.output_dir import write_json_atomic
+from .io.split_document import read_split_document
 
 
 def dataset_record(dataset_dir: str) -> dict[str, Any]:
     """The dataset's transforms_train.json (its world_to_nerf and generator settings)."""
-    path = os.path.join(dataset_dir, transforms_name("train"))
-    try:
-        with open(path, encoding="utf-8") as handle:
-            document = json.load(handle)
-    except FileNotFoundError:
-        raise DatasetGenError(f"{path}: not found; a camera path is mapped into a dataset's NeRF frame: "
-                              "generate the dataset first (the same command without --camera-path)") from None
-    except (OSError, ValueError) as error:
-        raise DatasetGenError(f"{path}: cannot read the dataset's JSON ({error})") from None
-    if not isinstance(document, dict) or not isinstance(document.get("world_to_nerf"), dict):
-        raise DatasetGenError(f"{path}: has no 'world_to_nerf'; was the dataset written by datasets_gen?")
-    return document
+    return read_split_document(dataset_dir, "train", ("world_to_nerf",),
+                               "a camera path is mapped into a dataset's NeRF frame: generate the dataset first "
+                               "(the same command without --camera-path)")
 
 
 def path_folder(dataset_dir: str, camera_name: str) -> str:

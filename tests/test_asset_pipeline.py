@@ -45,11 +45,29 @@ def test_a_real_scene_goes_from_training_to_a_scored_asset_in_blenders_renders(a
     nerf = json.loads((run / METRICS_NAME).read_text())["psnr"]
     print(f"A.blend at 48×48, surface {TRAIN_STEPS} steps: NeRF {nerf:.2f} dB, asset by Cycles {scores['cycles']:.2f} dB, "
           f"by EEVEE {scores['eevee']:.2f} dB")
-    # Measured: NeRF 27.46 dB; the asset (8000 triangles, 512² texture) 25.67 dB by Cycles and
-    # 25.61 by EEVEE: within 2 dB of the NeRF, and the engines within a tenth of a dB.
-    assert scores["cycles"] > nerf - 3.0 and scores["cycles"] > 20.0
+    # Measured: NeRF 26.87 dB; the asset (8000 triangles, 512² texture) 33.65 dB by Cycles and
+    # 33.79 by EEVEE. The asset beats the NeRF here: 600 steps leave the volume's render speckled,
+    # and the baked surface averages that away.
+    assert scores["cycles"] > nerf - 2.0 and scores["cycles"] > 28.0
     assert abs(scores["eevee"] - scores["cycles"]) < 1.0
     run_python("-m", "nerf_backend", "report", str(run))
     page = (run / REPORT_DIR / REPORT_INDEX).read_text()
     assert "The baked asset in Blender&#x27;s renders" in page or "The baked asset in Blender's renders" in page
     assert f"{scores['cycles']:.2f}" in page and "the asset, CYCLES" in page and "the asset, BLENDER_EEVEE" in page
+
+
+def test_rendering_an_asset_refuses_bad_input_in_one_line(tiny_demo_dataset, tmp_path):
+    missing = run_python("-m", "datasets_gen", *render_asset_argv(tmp_path / "none.glb", tiny_demo_dataset,
+                                                                  tmp_path / "out", "cycles"), check=False)
+    assert missing.returncode == 2 and "none.glb: no such asset" in missing.stderr
+    asset = tmp_path / "a.glb"
+    asset.write_bytes(b"not a glTF file")
+    no_dataset = run_python("-m", "datasets_gen", *render_asset_argv(asset, tmp_path / "nowhere", tmp_path / "out",
+                                                                     "cycles"), check=False)
+    assert no_dataset.returncode == 2 and "transforms_test.json: not found" in no_dataset.stderr
+    broken = run_python("-m", "datasets_gen", *render_asset_argv(asset, tiny_demo_dataset, tmp_path / "out", "eevee"),
+                        check=False)
+    assert broken.returncode == 2 and "a.glb: Blender's glTF importer refused it" in broken.stderr
+    lone = run_python("-m", "datasets_gen", "--dataset", str(tiny_demo_dataset), "--out", str(tmp_path / "x"),
+                      check=False)
+    assert lone.returncode == 2 and "--dataset needs --render-asset" in lone.stderr
