@@ -31,8 +31,10 @@ SUITES = ("trixie", "sid")
 CACHE = Path.home() / ".cache" / "nerf-from-blender"
 # python3-numpy: Debian's blender only recommends it, and the add-on (the voxeliser) needs it.
 # python3-venv, python3-pip and ca-certificates: the bpy venvs made inside (trixie's Python 3.13).
+# libegl1, libegl-mesa0 and libgl1-mesa-dri: EEVEE in those bpy wheels draws through EGL ("Couldn't
+# open libEGL.so.1" without them), here on Mesa's software renderer.
 PACKAGES = ("blender", "python3-numpy", "xvfb", "xauth", "x11-apps", "imagemagick", "python3-venv", "python3-pip",
-            "ca-certificates")
+            "ca-certificates", "libegl1", "libegl-mesa0", "libgl1-mesa-dri")
 # sid's blender 5.2.2 package does not depend on the modules its Extensions add-on imports
 # (cattrs, requests): without them that add-on fails to register ("No module named 'cattrs'")
 # and `blender --command extension` cannot run. A user of that package needs them too.
