@@ -6,8 +6,8 @@ process.
 
 By concern: ``dataset_ops`` (Generate Dataset), ``training_ops`` (Train, Resume, Cancel, Set
 Up Backend), ``results_ops`` (Render Test Views, Render Active Camera, Compare with Cycles,
-Open Report), ``animation_ops`` (Render Camera Animation, its Cancel, Import NeRF Mesh); ``paths``
-and ``images`` are what they share."""
+Open Report), ``animation_ops`` (Render Camera Animation, its Cancel, Import NeRF Mesh, Import
+NeRF Asset and its Cancel); ``paths``, ``images`` and ``scene_import`` are what they share."""
 
 from __future__ import annotations
 

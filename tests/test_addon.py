@@ -1,7 +1,7 @@
 """The Blender add-on, installed from the built extension zip into real Blender (the bpy
 module) and used headless: register, generate a dataset from a real scene, train in a real
-backend subprocess, load results as images, compare the active camera with Cycles, then
-disable and remove. See tests/blender_scripts/addon_session.py for the session itself."""
+backend subprocess, load results as images, compare the active camera with Cycles, import the
+NeRF's mesh and its baked asset (rendered with F12 in Cycles and EEVEE), then disable and remove. See tests/blender_scripts/addon_session.py for the session itself."""
 
 from __future__ import annotations
 

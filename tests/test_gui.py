@@ -167,7 +167,7 @@ def test_the_nerf_asset_is_baked_with_a_bar_and_drawn_in_the_viewport(gui):
     assert progress and all(detail.startswith("Export: ") for _, detail in progress)
     # Over the default cube (±1), as the mesh; drawn with its texture where the viewport was empty
     # (the cube and the mesh hidden): measured, 10.3 % of the viewport's pixels changed in 4.3.2
-    # and 10.4 % in 5.2.2.
+    # and 10.4 % in 5.2.2; Material Preview drew it at 7.7 and 7.8 frames a second (llvmpipe).
     corners = np.array(asset["bounds"])
     np.testing.assert_allclose(corners.min(axis=0), [-1, -1, -1], atol=0.25)
     np.testing.assert_allclose(corners.max(axis=0), [1, 1, 1], atol=0.25)

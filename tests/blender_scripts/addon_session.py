@@ -10,7 +10,9 @@ recorded in REPORT.json:
    process: the bpy module has no Blender binary to spawn);
 3. train the fast preset through the Train operator (a real backend subprocess), polling the
    add-on's own job code as its timer would, until done;
-4. render the test views (loaded as images) and compare the active camera with Cycles;
+4. render the test views (loaded as images) and compare the active camera with Cycles; the
+   camera's animation, the NeRF mesh, and the baked asset (a job, imported, F12 in Cycles and
+   EEVEE);
 5. disable and remove the extension; list what is left.
 """
 
