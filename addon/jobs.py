@@ -1,6 +1,7 @@
 """Background jobs the add-on starts and watches: training and the asset's export (the
-backend's own Python), dataset generation and the animation (a background Blender). Plain Python, no bpy and no torch, so tests drive
-it without Blender; the panel only draws what ``poll()`` returns and calls these methods.
+backend's own Python), dataset generation and the animation (a background Blender). Plain
+Python, no bpy and no torch, so tests drive it without Blender; the panel only draws what
+``poll()`` returns and calls these methods.
 
 A job is found again from its folder alone (reopening the .blend): ``<folder>.job.json``
 beside the run or dataset folder records the process id and command, and the run's

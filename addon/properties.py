@@ -60,10 +60,12 @@ class NerfSettings(bpy.types.PropertyGroup):
                                       description="Add the finished video to the Video Sequencer as a movie strip")
     mesh_resolution: IntProperty(name="Mesh Grid", default=256, min=16, max=1024,
                                  description="Grid vertices along the scene box's longest side for the NeRF mesh")
-    asset_triangles: IntProperty(name="Triangles", default=50000, min=100, max=5000000,
-                                 description="The most triangles the NeRF asset keeps (its surface is decimated to them)")
-    asset_texture_size: EnumProperty(name="Texture", default="2048", description="The NeRF asset's texture size",
-                                     items=tuple((str(n), f"{n} px", f"A {n}×{n} texture") for n in (512, 1024, 2048, 4096)))
+    asset_triangles: IntProperty(
+        name="Triangles", default=50000, min=100, max=5000000,
+        description="The most triangles the NeRF asset keeps (its surface is decimated to them)")
+    asset_texture_size: EnumProperty(
+        name="Texture", default="2048", description="The NeRF asset's texture size",
+        items=tuple((str(n), f"{n} px", f"A {n}×{n} texture") for n in (512, 1024, 2048, 4096)))
     # Results of the last comparison (shown in the panel).
     # The last comparison's metrics as the backend lists them (compare.json's "metrics" table):
     # JSON rows {"key", "label", "value", "text"}; "" before any comparison.

@@ -43,8 +43,8 @@ def test_a_real_scene_goes_from_training_to_a_scored_asset_in_blenders_renders(a
         run_python("-m", "nerf_backend", "eval", "--dataset", str(a_blend_dataset), "--renders", str(renders))
         scores[engine] = json.loads((renders / METRICS_NAME).read_text())["psnr"]
     nerf = json.loads((run / METRICS_NAME).read_text())["psnr"]
-    print(f"A.blend at 48×48, surface {TRAIN_STEPS} steps: NeRF {nerf:.2f} dB, asset by Cycles {scores['cycles']:.2f} dB, "
-          f"by EEVEE {scores['eevee']:.2f} dB")
+    print(f"A.blend at 48×48, surface {TRAIN_STEPS} steps: NeRF {nerf:.2f} dB, "
+          f"asset by Cycles {scores['cycles']:.2f} dB, by EEVEE {scores['eevee']:.2f} dB")
     # Measured: NeRF 26.87 dB; the asset (8000 triangles, 512² texture) 33.65 dB by Cycles and
     # 33.79 by EEVEE. The asset beats the NeRF here: 600 steps leave the volume's render speckled,
     # and the baked surface averages that away.

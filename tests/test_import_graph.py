@@ -195,8 +195,8 @@ DEFERRED_IMPORTS = {
     "datasets_gen.generate": {"bpy", "datasets_gen.cli", "traceback"},  # a script: sys.path is set first
     # The pipelines: bad input is refused before the Blender side loads.
     "datasets_gen.cli": {"datasets_gen.generator", "datasets_gen.suite", "datasets_gen.camera_path_export",
-                         "datasets_gen.asset_render", "datasets_gen.core.builtin_scenes", "datasets_gen.core.camera_path",
-                         "datasets_gen.io.shards"},
+                         "datasets_gen.asset_render", "datasets_gen.core.builtin_scenes",
+                         "datasets_gen.core.camera_path", "datasets_gen.io.shards"},
     "datasets_gen.generator": {"bpy", "numpy", "datasets_gen.blender.scene_state", "datasets_gen.blender.render",
                                "datasets_gen.blender.scene_bounds", "datasets_gen.blender.scene_facts",
                                "datasets_gen.blender.scene_occupancy", "datasets_gen.blender.builtin_scenes",
