@@ -121,10 +121,11 @@ def report_argv(run: str) -> list[str]:
     return [REPORT, str(run)]
 
 
-def render_asset_argv(asset: str, dataset: str, out: str, engine: str) -> list[str]:
-    """The generator rendering a baked asset from the dataset's test cameras into ``out``."""
-    return [GeneratorFlag.RENDER_ASSET, str(asset), GeneratorFlag.DATASET, str(dataset), "--out", str(out),
-            GeneratorFlag.ENGINE, engine, GeneratorFlag.NO_PROGRESS]
+def render_asset_argv(asset: str, dataset: str, engine: str) -> list[str]:
+    """The generator rendering a baked asset from the dataset's test cameras (its ``--out``, an
+    option of the generator's, comes from ``options_to_argv``)."""
+    return [GeneratorFlag.RENDER_ASSET, str(asset), GeneratorFlag.DATASET, str(dataset), GeneratorFlag.ENGINE, engine,
+            GeneratorFlag.NO_PROGRESS]
 
 
 def blender_script_command(blender: str, scene: str, script: str, argv: Sequence[str]) -> list[str]:

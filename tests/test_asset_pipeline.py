@@ -12,10 +12,16 @@ import json
 import pytest
 from conftest import run_python
 
+from datasets_gen.core.options import options_from_keywords, options_to_argv
 from nerf_contract.commands import render_asset_argv
 from nerf_contract.run_layout import ASSET_DIR, ASSET_NAME, ASSET_RENDERS_DIR, METRICS_NAME, REPORT_DIR, REPORT_INDEX
 
 TRAIN_STEPS = 600
+
+
+def _render_asset(asset, dataset, out, engine: str, check: bool = True):
+    argv = [*render_asset_argv(asset, dataset, engine), *options_to_argv(options_from_keywords(out_dir=str(out)))]
+    return run_python("-m", "datasets_gen", *argv, check=check)
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +44,7 @@ def test_a_real_scene_goes_from_training_to_a_scored_asset_in_blenders_renders(a
     scores = {}
     for engine in ("cycles", "eevee"):
         renders = run / ASSET_DIR / ASSET_RENDERS_DIR / engine
-        run_python("-m", "datasets_gen", *render_asset_argv(asset, a_blend_dataset, renders, engine))
+        _render_asset(asset, a_blend_dataset, renders, engine)
         assert sorted(p.name for p in renders.glob("r_*.png")) == ["r_0.png", "r_1.png", "r_2.png"]
         run_python("-m", "nerf_backend", "eval", "--dataset", str(a_blend_dataset), "--renders", str(renders))
         scores[engine] = json.loads((renders / METRICS_NAME).read_text())["psnr"]
@@ -57,16 +63,13 @@ def test_a_real_scene_goes_from_training_to_a_scored_asset_in_blenders_renders(a
 
 
 def test_rendering_an_asset_refuses_bad_input_in_one_line(tiny_demo_dataset, tmp_path):
-    missing = run_python("-m", "datasets_gen", *render_asset_argv(tmp_path / "none.glb", tiny_demo_dataset,
-                                                                  tmp_path / "out", "cycles"), check=False)
+    missing = _render_asset(tmp_path / "none.glb", tiny_demo_dataset, tmp_path / "out", "cycles", check=False)
     assert missing.returncode == 2 and "none.glb: no such asset" in missing.stderr
     asset = tmp_path / "a.glb"
     asset.write_bytes(b"not a glTF file")
-    no_dataset = run_python("-m", "datasets_gen", *render_asset_argv(asset, tmp_path / "nowhere", tmp_path / "out",
-                                                                     "cycles"), check=False)
+    no_dataset = _render_asset(asset, tmp_path / "nowhere", tmp_path / "out", "cycles", check=False)
     assert no_dataset.returncode == 2 and "transforms_test.json: not found" in no_dataset.stderr
-    broken = run_python("-m", "datasets_gen", *render_asset_argv(asset, tiny_demo_dataset, tmp_path / "out", "eevee"),
-                        check=False)
+    broken = _render_asset(asset, tiny_demo_dataset, tmp_path / "out", "eevee", check=False)
     assert broken.returncode == 2 and "a.glb: Blender's glTF importer refused it" in broken.stderr
     lone = run_python("-m", "datasets_gen", "--dataset", str(tiny_demo_dataset), "--out", str(tmp_path / "x"),
                       check=False)

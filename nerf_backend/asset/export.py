@@ -71,7 +71,7 @@ def export_run(run: RunFolder, out: Path, device: torch.device, triangles: int =
 
     now = time.perf_counter()
     model, ray_bounds, state = load_trained_model(run, device)
-    mesh, how = model_mesh(model, ray_bounds, state["iteration"], device, resolution, threshold)
+    mesh, how = model_mesh(model, ray_bounds, state["iteration"], device, resolution, threshold, coloured=False)
     now = stage("surface", now)
     vertices, faces = decimate(mesh.vertices, mesh.faces, triangles)
     normals = vertex_normals(vertices, faces)
@@ -86,7 +86,7 @@ def export_run(run: RunFolder, out: Path, device: torch.device, triangles: int =
     texture = dilate(baked.colours, baked.filled, GUTTER_TEXELS)
     now = stage("bake", now)
     profile = load_scene_profile(dataset)
-    world = to_blender_world(Mesh(atlas_vertices, atlas.faces, atlas_normals, torch.zeros(0, 3)),
+    world = to_blender_world(Mesh(atlas_vertices, atlas.faces, atlas_normals, mesh.colours),
                              profile.get("world_to_nerf") if profile else None)
     size = write_glb(out, world.vertices, world.normals, atlas.uv, atlas.faces, texture, out.stem)
     stage("write", now)

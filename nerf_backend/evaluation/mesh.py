@@ -74,12 +74,13 @@ def sample_density(density_fn: DensityFn, box: SceneBounds, resolution: int, dev
 
 
 @torch.no_grad()
-def extract_mesh(density_fn: DensityFn, colour_fn: ColourFn, box: SceneBounds, resolution: int,
+def extract_mesh(density_fn: DensityFn, colour_fn: ColourFn | None, box: SceneBounds, resolution: int,
                  threshold: float | None = None, device: torch.device | str = "cpu",
                  render_step: float | None = None) -> Mesh:
     """Marching cubes at ``threshold`` (default: ``default_threshold`` of ``render_step``, or
     of the voxel size without one) over the density inside ``box``; each vertex coloured by
-    ``colour_fn`` looking at it along its inward normal (as a camera outside would)."""
+    ``colour_fn`` looking at it along its inward normal (as a camera outside would); without
+    one, no colours (``[0, 3]``: a caller that colours the surface its own way)."""
     volume, spacing = sample_density(density_fn, box, resolution, device)
     level = default_threshold(render_step or spacing[0]) if threshold is None else threshold
     if not volume.min() < level < volume.max():
@@ -92,6 +93,8 @@ def extract_mesh(density_fn: DensityFn, colour_fn: ColourFn, box: SceneBounds, r
     # faces are counter-clockwise, so each face is turned over. Its normals already point out.
     faces = torch.from_numpy(faces[:, [0, 2, 1]].astype(np.int64))
     normals = torch.nn.functional.normalize(torch.from_numpy(normals.astype(np.float64)), dim=-1)
+    if colour_fn is None:
+        return Mesh(vertices, faces, normals, torch.zeros(0, 3))
     colours = torch.cat([colour_fn(v.float().to(device), -n.float().to(device)).float().cpu()
                          for v, n in zip(vertices.split(65536), normals.split(65536))]).clamp(0, 1)
     return Mesh(vertices, faces, normals, colours)
@@ -167,8 +170,10 @@ def run_mesh(run: RunFolder, device: torch.device, resolution: int = 256,
 
 
 def model_mesh(model, ray_bounds: RayBounds, iteration: int, device: torch.device, resolution: int = 256,
-               threshold: float | None = None) -> tuple[Mesh, dict]:
-    """``run_mesh`` of a model already loaded (``load_trained_model``)."""
+               threshold: float | None = None, coloured: bool = True) -> tuple[Mesh, dict]:
+    """``run_mesh`` of a model already loaded (``load_trained_model``); ``coloured=False``
+    leaves the vertices without colours (``export`` bakes a texture instead)."""
+    colour_fn = model.colour_at if coloured else None
     if resolution < 8:
         raise NerfError(f"mesh: resolution {resolution}: at least 8 vertices along the box's longest side")
     box = ray_bounds.box if ray_bounds.box is not None else PROTOCOL_BOX
@@ -176,10 +181,10 @@ def model_mesh(model, ray_bounds: RayBounds, iteration: int, device: torch.devic
     voxel = max(hi - lo for lo, hi in zip(box.box_min, box.box_max)) / (resolution - 1)
     surface = model.surface_function()
     if surface is not None and threshold is None:  # a signed distance: its zero level set
-        mesh = extract_mesh(surface, model.colour_at, box, resolution, 0.0, device)
+        mesh = extract_mesh(surface, colour_fn, box, resolution, 0.0, device)
         level, rule = 0.0, "the signed distance's zero level set"
     else:
-        mesh = extract_mesh(model.density_at, model.colour_at, box, resolution, threshold, device, render_step)
+        mesh = extract_mesh(model.density_at, colour_fn, box, resolution, threshold, device, render_step)
         level = threshold if threshold is not None else default_threshold(render_step or voxel)
         rule = ("given" if threshold is not None else
                 f"ln 2 / step: the density at which one render step ({render_step or voxel:.5g}) is half opaque")

@@ -94,21 +94,26 @@ report["generate"] = {"result": sorted(bpy.ops.nerf.generate_dataset("EXEC_DEFAU
                       "files": sorted(p.name for p in (WORK / "dataset").iterdir())}
 save()
 
+def follow(folder: str, states: list):
+    """Call the add-on's timer as Blender would (it does not fire in the background module) until
+    it unregisters itself (returns None), recording the job in ``folder`` each time; its last status."""
+    deadline = time.time() + 600
+    while time.time() < deadline:
+        again = job_timer._tick()
+        state = job_timer.status[folder]
+        states.append([state.state, round(state.fraction, 3), state.detail])
+        if again is None:
+            break
+        time.sleep(again)
+    return state
+
+
 # 3. training in a backend subprocess, watched through the add-on's job code
 settings.preset, settings.budget_kind, settings.budget_iterations = "fast", "ITERATIONS", 300
 start = time.time()
 report["train"] = {"result": sorted(bpy.ops.nerf.train()), "returned_after_s": time.time() - start, "states": []}
-deadline = time.time() + 600
-# The timer the operator registered does not fire in the background module: call it as Blender
-# would, until it unregisters itself (returns None).
 report["train"]["timer_registered"] = bpy.app.timers.is_registered(job_timer._tick)
-while time.time() < deadline:
-    again = job_timer._tick()
-    state = job_timer.status[str(paths.run_dir(bpy.context))]
-    report["train"]["states"].append([state.state, round(state.fraction, 3), state.detail])
-    if again is None:
-        break
-    time.sleep(again)
+state = follow(str(paths.run_dir(bpy.context)), report["train"]["states"])
 report["train"]["final"] = {"state": state.state, "detail": state.detail, "error": state.error,
                             "preview_image": sys.modules[f"{module}.images"].PREVIEW_IMAGE in bpy.data.images,
                             "cpu_threads": [e.cpu_threads for e in training_events.read_events(
@@ -176,15 +181,7 @@ scene.frame_start, scene.frame_end = 1, 3
 scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 40, 30, 100
 settings.animation_cycles, settings.animation_sequencer = True, True
 report["animation"] = {"result": sorted(bpy.ops.nerf.render_animation()), "states": []}
-folder = str(paths.animation_dir(bpy.context))
-deadline = time.time() + 600
-while time.time() < deadline:
-    again = job_timer._tick()
-    state = job_timer.status[folder]
-    report["animation"]["states"].append([state.state, round(state.fraction, 3), state.detail])
-    if again is None:
-        break
-    time.sleep(again)
+state = follow(str(paths.animation_dir(bpy.context)), report["animation"]["states"])
 report["animation"]["final"] = {"state": state.state, "detail": state.detail, "error": state.error,
                                 "warning": state.warning, "shown": state.extra.get("shown")}
 save()
@@ -241,15 +238,7 @@ save()
 # and EEVEE from the active camera beside the originals' own Cycles render.
 settings.asset_triangles, settings.asset_texture_size = 5000, "512"
 report["asset"] = {"result": sorted(bpy.ops.nerf.import_asset()), "states": []}
-folder = str(paths.asset_dir(bpy.context))
-deadline = time.time() + 600
-while time.time() < deadline:
-    again = job_timer._tick()
-    state = job_timer.status[folder]
-    report["asset"]["states"].append([state.state, round(state.fraction, 3), state.detail])
-    if again is None:
-        break
-    time.sleep(again)
+state = follow(str(paths.asset_dir(bpy.context)), report["asset"]["states"])
 report["asset"]["final"] = {"state": state.state, "detail": state.detail, "error": state.error,
                             "warning": state.warning, "imported": state.extra.get("imported")}
 asset = bpy.data.objects.get(report["asset"]["final"]["imported"] or "")
