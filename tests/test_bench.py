@@ -57,6 +57,9 @@ def test_short_bench_writes_json_table_and_plot(tiny_demo_dataset, tmp_path):
     assert commit is None or re.fullmatch(r"[0-9a-f]{7,}(\+changes)?", commit), commit
     assert f"Made by `{command}` at commit " in table
     assert "| Chamfer | F-score at τ |" in table
+    # What computed the figures: a GPU's name, or here the CPU and its vector extensions.
+    assert report["machine"]["processor"] == f"CPU ({torch.backends.cpu.get_cpu_capability()})"
+    assert f"on {report['machine']['threads']} threads, {report['machine']['processor']}." in table
     with Image.open(out / "bench.png") as plot:
         assert plot.size[0] > 400 and plot.size[1] > 300
     assert "bench.json" in result.stdout

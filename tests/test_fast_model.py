@@ -414,3 +414,23 @@ def test_occupancy_along_rays_equals_the_query_of_world_points():
     units = ((points - box_min) / (box_max - box_min) * torch.tensor([40.0, 20.0, 10.0])).view(500, 64, 3)
     near_boundary = ((units - units.round()).abs() < 1e-4).any(dim=-1)
     assert not (along != direct)[~near_boundary].any()
+
+
+def test_render_caches_follow_weights_swapped_as_module_to_swaps_them():
+    """``module.to(device)`` keeps each parameter object and swaps its storage; the density
+    volume, the render grid and the row tables kept for rendering must follow (keyed on the
+    storage and device, not on the parameter's identity; a GPU run once rendered with the
+    CPU's volume)."""
+    model = _solid_grid_model()
+    from nerf_backend.core.cameras import ray_box_intersection
+
+    origins = torch.tensor([[0.0, -4.0, 0.0]]).repeat(200, 1)
+    directions = torch.nn.functional.normalize(torch.rand(200, 3) * 0.4 - 0.2 + torch.tensor([0.0, 1.0, 0.0]), dim=-1)
+    near, far, _ = ray_box_intersection(origins, directions, torch.tensor(BOX.box_min), torch.tensor(BOX.box_max))
+    with torch.no_grad():
+        before = model(origins, directions, near, far)[0]
+        assert before.opacity.max() > 0.5  # the blobs are seen
+        for parameter in model.field.density_grid.parameters():
+            parameter.data = torch.zeros_like(parameter.data)  # only the faint shift left, as ``to`` would swap it
+        after = model(origins, directions, near, far)[0]
+    assert after.opacity.max() < 0.01  # what softplus(shift) leaves over the box

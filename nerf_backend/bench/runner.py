@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..core.devices import resolve_device
+from ..core.devices import machine_record, resolve_device
 from ..core.errors import NerfError
 from ..core.files import write_json
 from ..core.provenance import provenance
@@ -177,7 +177,7 @@ def run_bench(dataset: Path, variants: list[Variant], out_dir: Path, budget_seco
     report = {
         "dataset": str(dataset.resolve()), "seed": seed, "device": device,
         "budget": {"seconds": budget_seconds} if budget_seconds is not None else {"iterations": iterations},
-        "machine": {"torch": torch.__version__, "threads": torch.get_num_threads()},
+        "machine": machine_record(resolve_device(device)),
         "provenance": provenance(command),
         "variants": results,
         "ablation_order": ablation_order(results),

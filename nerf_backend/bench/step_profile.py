@@ -18,9 +18,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import torch
-
-from ..core.devices import resolve_device
+from ..core.devices import machine_record, machine_words, resolve_device
 from ..core.errors import NerfError
 from ..core.files import write_json
 from ..core.stage_timer import StageTimer
@@ -108,8 +106,7 @@ def profile_marched_step(dataset: Path, preset: str, steps: int, out_dir: Path, 
     config = RunFolder(run_dir).read_config()
     report = {
         "dataset": str(Path(dataset).resolve()), "preset": preset, "overrides": list(overrides), "seed": seed,
-        "device": str(device), "threads": torch.get_num_threads(), "torch": torch.__version__,
-        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "device": str(device), "machine": machine_record(device),
         "hardware": hardware,
         "warmup": {"seconds": warm.train_seconds, "iterations": warm.iteration},
         "image_size": [test.intrinsics.width, test.intrinsics.height],
@@ -134,7 +131,7 @@ def profile_markdown(report: dict) -> str:
              f"{report['image_size'][0]}×{report['image_size'][1]} images, {report['train_views']} train views, "
              f"{report['rays_per_batch']} rays a step, grid vertices {report['vertices']}, "
              f"{report['occupied_fraction']:.1%} of occupancy cells occupied; {report['device']}, "
-             f"{report['threads']} threads, torch {report['torch']} ({report['cpu_capability']}).", "",
+             f"{machine_words(report['machine'])}.", "",
              f"This machine, measured: {hw['gflops']:.0f} GFLOP/s (float32 matrix product), "
              f"{hw['bandwidth_gb_s']:.1f} GB/s (copy), {hw['gathers_m_s']:.0f} M random float gathers/s from a "
              f"table of the field's size. \"× reference\": the stage's time over the time its work takes at those "

@@ -33,11 +33,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from nerf_contract.dataset_layout import transforms_name
 from nerf_contract.training_events import Collapse
 
+from ..core.devices import machine_record, resolve_device
 from ..core.errors import NerfError
 from ..core.files import write_json
 from ..core.provenance import provenance
@@ -243,7 +243,7 @@ def run_suite(paths: list[Path], variants: list[Variant], out_dir: Path, budget_
         scenes.append(scene_summary(dataset, bench, scene_dir))
     summary = {
         "budget": budget, "seed": seed, "device": device,
-        "machine": {"torch": torch.__version__, "threads": torch.get_num_threads()},
+        "machine": machine_record(resolve_device(device)),
         "provenance": provenance(command),
         "variants": plan["variants"],
         "collapse_margin_db": COLLAPSE_MARGIN_DB,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from ..core.devices import machine_words
 from ..core.plotting import pyplot
 from ..core.provenance import provenance_line
 from .curves import THRESHOLDS_DB
@@ -21,7 +22,7 @@ def markdown_table(report: dict) -> str:
     lines = [
         f"Budget: {budget.get('seconds', budget.get('iterations'))} "
         f"{'training seconds' if 'seconds' in budget else 'iterations'} per variant, seed {report['seed']}, "
-        f"torch {report['machine']['torch']} on {report['machine']['threads']} threads. "
+        f"{machine_words(report['machine'])}. "
         f"{provenance_line(report.get('provenance'))}".rstrip(),
         "",
         "| variant | iterations | test PSNR (dB) | SSIM | s to 20 / 25 / 30 dB | render s/image | peak MB | model MB |"
@@ -75,7 +76,7 @@ def suite_markdown(summary: dict) -> str:
     lines = [
         f"Budget: {budget.get('seconds', budget.get('iterations'))} "
         f"{'training seconds' if 'seconds' in budget else 'iterations'} per variant and scene, seed {summary['seed']}, "
-        f"torch {summary['machine']['torch']} on {summary['machine']['threads']} threads. Blank: the PSNR of an "
+        f"{machine_words(summary['machine'])}. Blank: the PSNR of an "
         "all-white image against the test views. Collapse: detected by the trainer (a `collapse` event) / final "
         f"PSNR within {summary['collapse_margin_db']:g} dB of the blank image's. "
         f"{provenance_line(summary.get('provenance'))}".rstrip(),

@@ -46,3 +46,22 @@ def autocast_dtype(precision: str, device: torch.device) -> torch.dtype | None:
     if dtype is not None and not torch.amp.is_autocast_available(device.type):
         raise NerfError(f"precision {precision}: autocast is not available on {device.type}")
     return dtype
+
+
+def machine_record(device: torch.device) -> dict:
+    """What computed a measurement, for its tables: torch's version, the CPU threads and the
+    processor (the GPU's name, or the CPU's vector extensions, which decide its kernels)."""
+    if device.type == "cuda":
+        processor = torch.cuda.get_device_name(device)
+    elif device.type == "mps":
+        processor = "Apple GPU (MPS)"
+    else:
+        processor = f"CPU ({torch.backends.cpu.get_cpu_capability()})"
+    return {"torch": torch.__version__, "threads": torch.get_num_threads(), "processor": processor}
+
+
+def machine_words(machine: dict) -> str:
+    """``machine_record`` in a table's words: ``torch 2.13.0+cpu on 2 threads, CPU (AVX512)``
+    (a record made before the processor was kept has only its threads)."""
+    words = f"torch {machine['torch']} on {machine['threads']} threads"
+    return f"{words}, {machine['processor']}" if machine.get("processor") else words

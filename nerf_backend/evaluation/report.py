@@ -343,7 +343,7 @@ def _asset_section(page: ReportPage, result: Result, prefix: str, split) -> str:
         first_engine, (first_renders, first_metrics, _) = next(iter(scored.items()))
         worst = sorted(first_metrics["per_view"], key=lambda v: v["psnr"])[:ASSET_VIEWS]
         stems = [p.stem for p in split.image_paths]
-        out.append(f"<table><tr><th>Cycles (ground truth)</th><th>NeRF</th>"
+        out.append("<table><tr><th>Cycles (ground truth)</th><th>NeRF</th>"
                    + "".join(f"<th>asset, {engine}</th>" for engine in scored) + "</tr>")
         for view in worst:
             stem = view["view"]

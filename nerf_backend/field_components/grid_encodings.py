@@ -32,6 +32,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..core.tensor_keys import values_key
+
 # (plane axes, line axis) of each of the three components.
 _MODES = (((0, 1), 2), ((0, 2), 1), ((1, 2), 0))
 
@@ -96,7 +98,7 @@ class VectorMatrixGrid(nn.Module):
                     [line[0, :, :, 0].T.contiguous() for line in self.lines])
         if torch.is_grad_enabled():
             return tables()
-        key = tuple((p.data_ptr(), p._version, p.dtype, p.shape) for p in [*self.planes, *self.lines])
+        key = values_key([*self.planes, *self.lines])
         if getattr(self, "_kept_tables", (None,))[0] != key:
             self._kept_tables = (key, tables())
         return self._kept_tables[1]

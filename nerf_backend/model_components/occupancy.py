@@ -14,6 +14,8 @@ import math
 import torch
 from torch import Tensor, nn
 
+from ..core.tensor_keys import values_key
+
 # How far (in cells, on each axis) the skip grid (``OccupancyGrid.skip_cells``) spreads each
 # occupied cell: a ray first checks spans of up to twice this many cells, one query each, and
 # marches only the marked ones in fine steps. Wider means fewer span queries and more fine
@@ -86,7 +88,7 @@ class OccupancyGrid(nn.Module):
         in an unmarked cell holds no occupied cell: each of its points is within
         ``SKIP_RADIUS`` cells of the midpoint's cell on every axis. Cached until ``occupied``
         changes."""
-        key = (id(self.occupied), self.occupied._version)
+        key = values_key([self.occupied])
         if getattr(self, "_skip_key", None) != key:
             self._skip = widened(self.occupied, SKIP_RADIUS)
             self._skip_key = key

@@ -328,8 +328,10 @@ class _Training:
         self.optimizer.load_state_dict(state["optimizer"])
         if "grad_scaler" in state:
             self.scaler.load_state_dict(state["grad_scaler"])
-        self.batch_generator.set_state(state["batch_rng"])
-        self.sample_generator.set_state(state["sample_rng"].to(self.sample_generator.get_state().device))
+        # A generator's state is a CPU byte tensor, a CUDA generator's too; loading the
+        # checkpoint onto the GPU moved them there.
+        self.batch_generator.set_state(state["batch_rng"].cpu())
+        self.sample_generator.set_state(state["sample_rng"].cpu())
         self.iteration, self.train_seconds = state["iteration"], state["train_seconds"]
 
     def run(self) -> TrainSummary:
