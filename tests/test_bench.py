@@ -157,9 +157,10 @@ def test_bench_step_profiles_a_marched_preset_by_stage(tiny_demo_dataset, tmp_pa
         assert row["reference_seconds"] > 0 and row["times_reference"] == pytest.approx(
             row["seconds"] / row["reference_seconds"]), name
     render = {row["stage"]: row for row in report["render"]["stages"]}
-    assert list(render) == ["spans", "march", "density", "colour", "other"]
-    assert render["spans"]["items"] == report["image_size"][0] * report["image_size"][1]
-    assert render["march"]["items"] >= render["density"]["items"] >= render["colour"]["items"] > 0
+    # On this CPU the compiled march renders (spans, march and density in one pass).
+    assert report["render"]["compiled_march"] and list(render) == ["march", "colour", "other"]
+    assert render["march"]["items"] >= render["colour"]["items"] > 0
+    assert "Through the compiled march" in result.stdout
     assert report["warmup"]["iterations"] > 0 and report["training"]["steps"] == 6
     assert "## Training step" in result.stdout and "## Rendered view" in result.stdout
 

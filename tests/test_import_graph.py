@@ -127,7 +127,7 @@ def test_packages_keep_to_their_side(package, forbidden):
 # sub-packages of lower layers only ("" is the modules at the top: commands and pipelines).
 LAYERS = {
     "nerf_backend": (
-        ("core",),
+        ("core", "kernels"),  # kernels: plain C sources and their builder
         ("data", "field_components", "model_components", "metrics"),
         ("fields",),
         ("models",),

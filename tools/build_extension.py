@@ -36,7 +36,8 @@ BACKEND_PACKAGES = ("nerf_backend", "nerf_contract")  # folders: the backend's P
 WHEEL_PACKAGES = ("datasets_gen", "nerf_contract")  # the wheel: what the add-on imports
 WHEEL_NAME = re.compile(r"\./wheels/(?P<name>[A-Za-z0-9_]+)-(?P<version>[0-9.]+)-py3-none-any\.whl")
 FIXED_TIME = (1980, 1, 1, 0, 0, 0)
-BACKEND_DATA = ("nerf_backend/requirements.txt", "nerf_backend/requirements-no-deps.txt", "nerf_backend/configs/presets.json")
+BACKEND_DATA = ("nerf_backend/requirements.txt", "nerf_backend/requirements-no-deps.txt", "nerf_backend/configs/presets.json",
+                "nerf_backend/kernels/march_render.c")
 
 
 def _sources(package: str) -> list[Path]:

@@ -12,7 +12,9 @@ difference between the two sides are printed. The baseline's ``marcher.py`` and
 with its own skip grid, the current side what the model renders with today
 (``render_occupancy``); where it is the same, both march ``render_occupancy``. The baseline's
 ``VectorMatrixGrid.forward`` (``field_components/grid_encodings.py``) reads the same grids on its
-side. The model is the same.
+side. The baseline always renders through PyTorch's march (the baseline's own); the current side
+renders as the model does today: through the compiled march (``kernels/march_render.c``) where it
+applies. The model is the same.
 """
 
 from __future__ import annotations
@@ -90,12 +92,14 @@ def main() -> int:
                                              "nerf_backend.field_components._baseline_grid_encodings"
                                              ).VectorMatrixGrid.forward,
                   "current": VectorMatrixGrid.forward}
+    library = {"baseline": lambda: (None, "the baseline side"), "current": marched.compiled_march_library}
     seconds: dict[str, list[float]] = {name: [] for name in sides}
     images: dict[str, list[np.ndarray]] = {name: [] for name in sides}
     for repeat in range(2):
         for name, march in sides.items():
             marched.render_marched_stopping_early = march
             VectorMatrixGrid.forward = grid_reads[name]
+            marched.compiled_march_library = library[name]
             for view in views:
                 start = time.perf_counter()
                 image = render_image(model, split.intrinsics, split.poses[view], ray_bounds)
@@ -104,6 +108,7 @@ def main() -> int:
                     images[name].append(image.rgb)
     marched.render_marched_stopping_early = sides["current"]
     VectorMatrixGrid.forward = grid_reads["current"]
+    marched.compiled_march_library = library["current"]
     width, height = split.intrinsics.width, split.intrinsics.height
     print(f"{args.run} on {args.dataset}: {width}×{height}, views {views}, {torch.get_num_threads()} threads")
     for name in sides:

@@ -21,6 +21,7 @@ from ..data.run_folder import RunFolder
 from ..evaluation.animation import FRAME_METRICS, render_animation
 from ..evaluation.inference import RENDERS_RECORD, render_cameras, render_split
 from ..metrics.registry import summary_line
+from ..model_components.compiled_march import RENDER_CHUNK as COMPILED_RENDER_CHUNK
 from ..models.base import Model
 from ..models.marched import MarchedModel
 from .arguments import add_device, positive_float, positive_int
@@ -35,7 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_device(parser)
     parser.add_argument("--chunk", type=positive_int, default=None,
                         help=f"rays per forward pass; bounds memory (default: the model's, {Model.render_chunk} "
-                             f"for NeRF MLPs, {MarchedModel.render_chunk} for marched models)")
+                             f"for NeRF MLPs, {MarchedModel.TORCH_RENDER_CHUNK} for marched models, "
+                             f"{COMPILED_RENDER_CHUNK} where the compiled CPU march renders)")
     parser.add_argument(BackendFlag.CAMERAS, type=Path, default=None,
                         help="render these cameras instead (a transforms JSON with w, h and intrinsics; no images)")
     parser.add_argument(BackendFlag.CAMERA_PATH, type=Path, default=None, metavar="PATH.json",

@@ -111,6 +111,12 @@ class MarchableField(nn.Module):
         """``density(x)`` read from ``density_volume()``'s result."""
         return self.density(x)
 
+    def volume_activation(self) -> tuple[str, float, float] | None:
+        """How ``density_from_volume`` turns the volume's trilinear value into density, as
+        ``(activation, scale, shift)`` of ``compiled_march.VolumeDensity``, so the compiled
+        march can read it; None where the density is not such a read."""
+        return None
+
     def surface_function(self) -> Callable[[Tensor], Tensor] | None:
         """``Model.surface_function``: positive inside, zero on the surface; None when the
         surface is a level of the density."""

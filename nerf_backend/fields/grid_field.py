@@ -112,6 +112,9 @@ class GridField(GridAppearance, MarchableField):
         summed = F.grid_sample(volume, grid, mode="bilinear", align_corners=True).view(-1)
         return self.density_from_features(summed)
 
+    def volume_activation(self) -> tuple[str, float, float]:
+        return "softplus", self.config.density_scale, self.config.density_shift
+
     @torch.no_grad()
     def vertex_density(self) -> Tensor:
         """Density at every grid vertex ``[Nx, Ny, Nz]``: within each grid cell the

@@ -227,6 +227,9 @@ class SurfaceField(GridAppearance, MarchableField):
     def density_from_volume(self, volume: Tensor, x: Tensor) -> Tensor:
         return self.density_from_distance(DenseGrid.read(volume, self.normalise(x)))
 
+    def volume_activation(self) -> tuple[str, float, float]:
+        return "laplace", float(self.beta), 0.0
+
     def encoding_parameters(self) -> list[nn.Parameter]:
         return [*self.sdf_grid.parameters(), *self.appearance_grid.parameters()]
 

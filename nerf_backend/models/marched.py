@@ -17,6 +17,8 @@ from ..core.tensor_keys import values_key
 from ..data.occupancy_prior import OccupancyPrior
 from ..field_components.grid_encodings import Vertices
 from ..fields.base import MarchableField
+from ..model_components.compiled_march import RENDER_CHUNK as COMPILED_RENDER_CHUNK
+from ..model_components.compiled_march import VolumeDensity, compiled_march_library, render_marched_compiled
 from ..model_components.marcher import OPAQUE_TRANSMITTANCE, render_marched, render_marched_stopping_early
 from ..model_components.occupancy import OccupancyGrid
 from ..model_components.render_output import RenderOutput
@@ -41,10 +43,10 @@ class MarchedModel(Model):
     """A field marched with an occupancy grid; ``prior``: where the scene can be at all."""
 
     OPAQUE_TRANSMITTANCE = OPAQUE_TRANSMITTANCE
-    # Rays per inference pass. Measured on 2 CPU cores with the span march (its first
-    # version), auto on A.blend's 800×800 views without the occupancy prior: 8192 rays a
-    # chunk 3.7 s a view, 32768 4.1 s, 131072 4.8 s (larger blocks leave the caches).
-    render_chunk = 8192
+    # Rays per inference pass through PyTorch's march. Measured on 2 CPU cores with the span
+    # march (its first version), auto on A.blend's 800×800 views without the occupancy prior:
+    # 8192 rays a chunk 3.7 s a view, 32768 4.1 s, 131072 4.8 s (larger blocks leave the caches).
+    TORCH_RENDER_CHUNK = 8192
     uses_occupancy_prior = True
 
     def __init__(self, field: MarchableField, march: MarchConfig, prior: OccupancyPrior | None = None) -> None:
@@ -180,6 +182,26 @@ class MarchedModel(Model):
             self._volume_key = key
         return self._volume
 
+    @property
+    def render_chunk(self) -> int:
+        """Rays per inference pass: the compiled march's ``RENDER_CHUNK`` where it renders,
+        else ``TORCH_RENDER_CHUNK``."""
+        compiled = self._compiled_density(next(self.parameters()).device)
+        return COMPILED_RENDER_CHUNK if compiled is not None else self.TORCH_RENDER_CHUNK
+
+    def _compiled_density(self, device: torch.device) -> tuple[VolumeDensity, object] | None:
+        """The density volume and the compiled march's library where inference can use them:
+        on the CPU, for a field whose density is an activated trilinear read, with a C
+        compiler present. Else None: the PyTorch march renders the same image."""
+        activation = self.field.volume_activation() if device.type == "cpu" else None
+        if activation is None:
+            return None
+        library, _ = compiled_march_library()
+        volume = self._density_volume() if library is not None else None
+        if volume is None:
+            return None
+        return VolumeDensity(volume[0, 0], *activation), library
+
     def _frozen_density(self, x: Tensor) -> Tensor:
         """Density without gradients: through the field's density volume where it has one,
         except in training, whose weights change every step: there the volume would be
@@ -197,6 +219,12 @@ class MarchedModel(Model):
                      density_fn=self._frozen_density)
         if not self.training and not torch.is_grad_enabled():
             march["occupancy"] = self.render_occupancy()
+            compiled = self._compiled_density(origins.device)
+            if compiled is not None:
+                density, library = compiled
+                del march["density_fn"]
+                return [render_marched_compiled(origins, directions, t_near, t_far, density=density,
+                                                colour_fn=self.field.colour, library=library, **march)]
             return [render_marched_stopping_early(origins, directions, t_near, t_far, colour_fn=self.field.colour,
                                                   **march)]
         offset = None

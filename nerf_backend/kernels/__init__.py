@@ -1,0 +1,1 @@
+"""Compiled CPU kernels (plain C, built on first use by ``build.py``)."""

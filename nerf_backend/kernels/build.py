@@ -1,0 +1,78 @@
+"""Compiled CPU kernels: plain C sources beside this file, built on first use with the system's
+C compiler into a per-user cache and loaded with ctypes.
+
+Why this way and not a PyTorch C++ extension or ``torch.compile``: a plain C file needs only a C
+compiler (no Python headers, no ninja, no PyTorch build tools), builds in about a second, and
+a machine without a compiler (Windows without Visual Studio, say) still renders, through the
+PyTorch path, which computes the same image (tests/test_compiled_march.py).
+
+Example:
+    >>> library, reason = load_kernel("march_render")
+    >>> (library is None) == (reason is not None)
+    True
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+SOURCES = Path(__file__).resolve().parent
+FLAGS = ("-O3", "-std=c99", "-shared", "-fPIC", "-pthread", "-fno-math-errno")
+# Where built kernels are kept: NERF_KERNEL_CACHE, else the user's cache folder.
+CACHE_VARIABLE = "NERF_KERNEL_CACHE"
+
+
+def cache_folder() -> Path:
+    named = os.environ.get(CACHE_VARIABLE)
+    if named:
+        return Path(named)
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "nerf_backend" / "kernels"
+
+
+def c_compiler() -> str | None:
+    """``CC`` if set, else the first of cc, gcc, clang on the PATH."""
+    named = os.environ.get("CC")
+    if named:
+        return shutil.which(named) or named
+    return next((path for name in ("cc", "gcc", "clang") if (path := shutil.which(name))), None)
+
+
+@functools.cache
+def load_kernel(name: str) -> tuple[ctypes.CDLL | None, str | None]:
+    """The library built from ``NAME.c`` and None, or None and why it is unavailable (no
+    compiler, a failed build); built once per source, compiler and machine, then reused."""
+    source = SOURCES / f"{name}.c"
+    compiler = c_compiler()
+    if compiler is None:
+        return None, "no C compiler (cc, gcc or clang) on the PATH; set CC to use another"
+    text = source.read_bytes()
+    key = hashlib.sha256(b"\0".join([text, compiler.encode(), " ".join(FLAGS).encode(),
+                                     platform.machine().encode(), platform.system().encode()])).hexdigest()[:16]
+    folder = cache_folder()
+    library = folder / f"{name}-{key}.so"
+    if not library.is_file():
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryDirectory(dir=folder) as scratch:
+                built = Path(scratch) / library.name
+                result = subprocess.run([compiler, *FLAGS, str(source), "-o", str(built), "-lm"],
+                                        capture_output=True, text=True, timeout=120, check=False)
+                if result.returncode != 0:
+                    last = (result.stderr.strip().splitlines() or ["no message"])[-1]
+                    return None, f"{compiler} could not build {source}: {last}"
+                os.replace(built, library)  # atomic: a parallel process loads a whole file or builds its own
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            return None, f"building {source} into {folder} failed: {exc}"
+    try:
+        return ctypes.CDLL(str(library)), None
+    except OSError as exc:
+        return None, f"{library}: cannot be loaded ({exc})"

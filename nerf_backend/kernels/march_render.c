@@ -1,0 +1,234 @@
+/* The inference march of a marched field with a dense density volume, one ray at a time, in
+ * one pass: skip-grid spans, fine steps, occupancy, the density's trilinear read and its
+ * activation, compositing and the early stop. What the PyTorch march does in rounds of many
+ * small tensor operations (nerf_backend/model_components/marcher.py,
+ * render_marched_stopping_early) is here a loop over a ray's own steps, so a ray stops at its
+ * surface and nothing is written for steps that hold no density.
+ *
+ * Out: each ray's transmittance, expected depth, the weight left uncoloured and the weight
+ * coloured, and the samples to colour, packed (ray, position, weight). The colour field (an
+ * MLP) stays in PyTorch. Plain C and POSIX threads, no Python API: built by
+ * nerf_backend/kernels/build.py with the system's C compiler, called through ctypes (which
+ * releases the GIL). The call marches its rays on its own threads: Python threads woke too
+ * late to share the few milliseconds of a chunk of rays.
+ *
+ * Layouts (row-major, contiguous): origins/directions [R, 3]; t_near/t_far [R]; skip and
+ * occupied [Gx, Gy, Gz] bytes (0/1); volume [Nz, Ny, Nx] floats (grid_sample's layout:
+ * x fastest), vertices at the box's corners (align_corners).
+ */
+
+#include <math.h>
+#include <pthread.h>
+#include <stdint.h>
+#include <string.h>
+
+enum { ACTIVATION_SOFTPLUS = 0, ACTIVATION_LAPLACE = 1 };
+
+typedef struct {
+    float step;
+    int64_t steps;          /* march intervals: u in [0, steps - 1) */
+    int64_t span;           /* intervals a skip-grid lookup vouches for */
+    int64_t cells[3];       /* Gx, Gy, Gz of skip and occupied */
+    int64_t vertices[3];    /* Nx, Ny, Nz of the volume */
+    float box_min[3];
+    float box_max[3];
+    int32_t activation;     /* ACTIVATION_* */
+    float a, b;             /* softplus: sigma = a * softplus(v + b); laplace: beta = a */
+    float opaque_transmittance;
+    float skipped_weight;   /* weight a ray may leave uncoloured */
+} MarchSettings;
+
+static inline float clampf(float v, float lo, float hi) { return v < lo ? lo : (v > hi ? hi : v); }
+
+static inline int64_t cell_index(const float units[3], const int64_t cells[3]) {
+    int64_t ijk[3];
+    for (int axis = 0; axis < 3; ++axis) {
+        float u = floorf(units[axis] < 0.0f ? 0.0f : units[axis]);
+        int64_t i = (int64_t)u;
+        ijk[axis] = i > cells[axis] - 1 ? cells[axis] - 1 : i;
+    }
+    return (ijk[0] * cells[1] + ijk[1]) * cells[2] + ijk[2];
+}
+
+static float activate(const MarchSettings *s, float v) {
+    if (s->activation == ACTIVATION_SOFTPLUS) {
+        float x = v + s->b;  /* softplus as PyTorch's (threshold 20: linear above) */
+        return s->a * (x > 20.0f ? x : log1pf(expf(x)));
+    }
+    float tail = 0.5f * expf(-fabsf(v) / s->a);
+    return (v > 0.0f ? tail : 1.0f - tail) / s->a;
+}
+
+static float density_at(const MarchSettings *s, const float *volume, const float p[3]) {
+    float frac[3];
+    int64_t lower[3];
+    for (int axis = 0; axis < 3; ++axis) {
+        int64_t n = s->vertices[axis];
+        float x = (p[axis] - s->box_min[axis]) / (s->box_max[axis] - s->box_min[axis]) * (float)(n - 1);
+        x = clampf(x, 0.0f, (float)(n - 1));
+        int64_t i = (int64_t)floorf(x);
+        if (i > n - 2) i = n - 2;
+        lower[axis] = i;
+        frac[axis] = x - (float)i;
+    }
+    const int64_t nx = s->vertices[0], ny = s->vertices[1];
+    const float *c = volume + (lower[2] * ny + lower[1]) * nx + lower[0];
+    const int64_t dy = nx, dz = nx * ny;
+    float fx = frac[0], fy = frac[1], fz = frac[2];
+    float c00 = c[0] + fx * (c[1] - c[0]);
+    float c10 = c[dy] + fx * (c[dy + 1] - c[dy]);
+    float c01 = c[dz] + fx * (c[dz + 1] - c[dz]);
+    float c11 = c[dz + dy] + fx * (c[dz + dy + 1] - c[dz + dy]);
+    float c0 = c00 + fy * (c10 - c00), c1 = c01 + fy * (c11 - c01);
+    return activate(s, c0 + fz * (c1 - c0));
+}
+
+typedef struct {
+    const MarchSettings *s;
+    const float *origins, *directions, *t_near, *t_far, *volume;
+    const uint8_t *skip, *occupied;
+    const int64_t *ray_index;     /* the rays to march (NULL: 0 .. count - 1) */
+    int64_t count;
+    int64_t next;                 /* the next block of ray_index to take (atomic) */
+    float *transmittance, *depth, *skipped, *coloured;
+    uint8_t *done;                /* 1 for each ray marched whole */
+    int64_t region;               /* packed samples a thread may write */
+    int64_t *sample_ray;
+    float *sample_position, *sample_weight;
+} MarchJob;
+
+typedef struct {
+    MarchJob *job;
+    int64_t first;                /* the thread's region starts at this packed sample */
+    int64_t written, looked_up, read;
+    char padding[64];             /* each thread's counters on cache lines of their own */
+} MarchThread;
+
+/* One ray into the thread's region; 0 if the region is full (nothing of the ray kept). */
+static int march_ray(MarchJob *job, MarchThread *thread, int64_t r) {
+    const MarchSettings *s = job->s;
+    float side[3];
+    for (int axis = 0; axis < 3; ++axis)
+        side[axis] = (s->box_max[axis] - s->box_min[axis]) / (float)s->cells[axis];
+    const int64_t spans = (s->steps - 1 + s->span - 1) / s->span;
+    const int64_t end = thread->first + job->region, ray_start = thread->written;
+    int64_t count = ray_start;
+    const float *o = job->origins + 3 * r, *d = job->directions + 3 * r;
+    const float near = job->t_near[r], far = job->t_far[r];
+    float start[3], along[3];
+    for (int axis = 0; axis < 3; ++axis) {
+        start[axis] = (o[axis] - s->box_min[axis]) / side[axis];
+        along[axis] = d[axis] / side[axis];
+    }
+    float transmittance = 1.0f, depth = 0.0f, skipped = 0.0f, coloured = 0.0f;
+    int64_t looked_up = 0, read = 0;
+    int stopped = 0;
+    for (int64_t k = 0; k < spans && far > near && !stopped; ++k) {
+        const float span_start = (float)(k * s->span) * s->step;
+        if (!(span_start < far - near)) break;
+        const float t_span = near + (span_start + 0.5f * (float)s->span * s->step);
+        float units[3];
+        for (int axis = 0; axis < 3; ++axis) units[axis] = start[axis] + along[axis] * t_span;
+        if (!job->skip[cell_index(units, s->cells)]) continue;
+        int64_t last = (k + 1) * s->span;
+        if (last > s->steps - 1) last = s->steps - 1;
+        for (int64_t u = k * s->span; u < last; ++u) {
+            float t_lo = near + (float)u * s->step;
+            if (t_lo > far) t_lo = far;
+            float t_hi = t_lo + s->step;
+            if (t_hi > far) t_hi = far;
+            const float delta = t_hi - t_lo;
+            if (!(delta > 0.0f)) break;
+            const float t_mid = t_lo + 0.5f * delta;
+            ++looked_up;
+            int inside = 1;
+            for (int axis = 0; axis < 3; ++axis) {
+                units[axis] = start[axis] + along[axis] * t_mid;
+                inside &= units[axis] >= 0.0f && units[axis] <= (float)s->cells[axis];
+            }
+            if (!inside || !job->occupied[cell_index(units, s->cells)]) continue;
+            float p[3];
+            for (int axis = 0; axis < 3; ++axis) p[axis] = o[axis] + d[axis] * t_mid;
+            const float sigma = density_at(s, job->volume, p);
+            ++read;
+            if (!(sigma > 0.0f)) continue;
+            const float optical = sigma * delta;
+            const float weight = transmittance * -expm1f(-optical);
+            if (weight < s->skipped_weight && skipped + weight <= s->skipped_weight) {
+                skipped += weight;  /* the faintest: given the ray's mean colour at the end */
+            } else {
+                if (count >= end) return 0;  /* no room: the caller marches this ray again */
+                job->sample_ray[count] = r;
+                memcpy(job->sample_position + 3 * count, p, sizeof p);
+                job->sample_weight[count] = weight;
+                coloured += weight;
+                ++count;
+            }
+            depth += weight * t_mid;
+            transmittance *= expf(-optical);
+            if (transmittance <= s->opaque_transmittance) { stopped = 1; break; }
+        }
+    }
+    job->transmittance[r] = transmittance;
+    job->depth[r] = depth;
+    job->skipped[r] = skipped;
+    job->coloured[r] = coloured;
+    job->done[r] = 1;
+    thread->written = count;
+    thread->looked_up += looked_up;
+    thread->read += read;
+    return 1;
+}
+
+enum { RAYS_PER_BLOCK = 64 };  /* taken at a time: neighbouring pixels share cache lines */
+
+static void *march_rays(void *argument) {
+    MarchThread *thread = argument;
+    MarchJob *job = thread->job;
+    for (;;) {
+        const int64_t block = __atomic_fetch_add(&job->next, RAYS_PER_BLOCK, __ATOMIC_RELAXED);
+        if (block >= job->count) return NULL;
+        const int64_t end = block + RAYS_PER_BLOCK < job->count ? block + RAYS_PER_BLOCK : job->count;
+        for (int64_t i = block; i < end; ++i)
+            if (!march_ray(job, thread, job->ray_index ? job->ray_index[i] : i))
+                return NULL;  /* region full: this thread stops, the others go on */
+    }
+}
+
+/* Marches `count` rays (`ray_index`, or 0 .. count - 1 when NULL) on `threads` threads. Thread
+ * t packs its samples from t·region on and returns how many in written[t]; a ray marched
+ * whole gets done[r] = 1 and its per-ray outputs, the rest (a thread's region filled) are left
+ * for another call with more room. counters[0] and [1] gain the fine steps looked up and the
+ * density reads (for the profile). Returns the number of threads that failed to start (the
+ * others take their rays). */
+int64_t march_render(const MarchSettings *s, const float *origins, const float *directions, const float *t_near,
+                     const float *t_far, const uint8_t *skip, const uint8_t *occupied, const float *volume,
+                     const int64_t *ray_index, int64_t count, int64_t threads, float *transmittance_out,
+                     float *depth_out, float *skipped_out, float *coloured_out, uint8_t *done, int64_t region,
+                     int64_t *sample_ray, float *sample_position, float *sample_weight, int64_t *written,
+                     int64_t *counters) {
+    MarchJob job = {s, origins, directions, t_near, t_far, volume, skip, occupied, ray_index, count, 0,
+                    transmittance_out, depth_out, skipped_out, coloured_out, done, region,
+                    sample_ray, sample_position, sample_weight};
+    enum { MAX_THREADS = 256 };
+    MarchThread state[MAX_THREADS];
+    pthread_t handles[MAX_THREADS];
+    int started[MAX_THREADS];
+    if (threads < 1) threads = 1;
+    if (threads > MAX_THREADS) threads = MAX_THREADS;
+    int64_t failed = 0;
+    for (int64_t t = 0; t < threads; ++t) {
+        state[t] = (MarchThread){&job, t * region, t * region, 0, 0, {0}};
+        /* The calling thread takes the last share itself. */
+        started[t] = t + 1 < threads && pthread_create(&handles[t], NULL, march_rays, &state[t]) == 0;
+        if (t + 1 < threads && !started[t]) ++failed;
+    }
+    march_rays(&state[threads - 1]);
+    for (int64_t t = 0; t < threads; ++t) {
+        if (started[t]) pthread_join(handles[t], NULL);
+        written[t] = state[t].written - state[t].first;
+        counters[0] += state[t].looked_up;
+        counters[1] += state[t].read;
+    }
+    return failed;
+}

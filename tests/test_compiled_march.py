@@ -1,0 +1,140 @@
+"""The compiled CPU march (nerf_backend/kernels/march_render.c) against PyTorch's: the same
+rays through the same models must give the same image, depth and opacity to the bounds the
+two inference shortcuts allow (the early stop, the faint weight left uncoloured), for the
+grid field's softplus and the surface field's Laplace density; a ray that needs more packed
+samples than the buffer holds is marched again into a larger one; no compiler is an answer
+with its reason, and the model then renders through PyTorch."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+
+from nerf_backend.configs.presets import PRESETS
+from nerf_backend.core.cameras import ray_box_intersection
+from nerf_backend.core.scene_bounds import SceneBounds
+from nerf_backend.kernels import build
+from nerf_backend.model_components import compiled_march
+from nerf_backend.model_components.marcher import OPAQUE_TRANSMITTANCE, SKIPPED_WEIGHT, render_marched_stopping_early
+from nerf_backend.models.registry import build_model
+
+BOX = SceneBounds((-1.0, -1.2, -0.8), (1.0, 1.2, 0.8))  # not a cube: the axes must not be swapped
+
+
+@pytest.fixture(scope="module")
+def library():
+    found, reason = compiled_march.compiled_march_library()
+    if found is None:
+        pytest.fail(f"the compiled march must build here (make setup's machines have gcc): {reason}")
+    return found
+
+
+def _model(preset: str, seed: int, spread: float):
+    """A model of ``preset`` with random smooth colour and, but for the surface field (which
+    starts as a sphere), random smooth blobs of density (``spread``: their contrast),
+    occupancy updated, in inference mode."""
+    torch.manual_seed(seed)
+    model = build_model(dataclasses.replace(PRESETS[preset]), BOX)
+    vertices = model.field.vertices
+    model.resize((5, 6, 4))
+    kept = {id(p) for p in getattr(model.field, "sdf_grid", torch.nn.Module()).parameters()}
+    with torch.no_grad():
+        for parameter in model.field.encoding_parameters():
+            if id(parameter) not in kept:
+                parameter.normal_(0.0, spread)
+    model.resize(vertices)
+    model.update_occupancy()
+    return model.eval()
+
+
+def _rays(count: int, seed: int):
+    generator = torch.Generator().manual_seed(seed)
+    origins = torch.nn.functional.normalize(torch.randn(count, 3, generator=generator), dim=-1) * 4.0
+    targets = (torch.rand(count, 3, generator=generator) * 2 - 1) * torch.tensor(BOX.box_max)
+    directions = torch.nn.functional.normalize(targets - origins, dim=-1)
+    near, far, _ = ray_box_intersection(origins, directions, torch.tensor(BOX.box_min), torch.tensor(BOX.box_max))
+    return origins, directions, near, far
+
+
+def _both(model, rays, library):
+    """The image through the compiled march (as the model renders on the CPU) and through
+    PyTorch's march, from the same occupancy and density volume."""
+    with torch.no_grad():
+        compiled = model(*rays)[0]
+        march = dict(occupancy=model.render_occupancy(), step=model.step, steps=model.samples_per_ray, background=1.0)
+        reference = render_marched_stopping_early(*rays, density_fn=model._frozen_density, colour_fn=model.field.colour,
+                                                  **march)
+        density, used = model._compiled_density(rays[0].device)
+    assert used is library and density.volume.shape[::-1] == model.field.vertices  # the model took the compiled path
+    return compiled, reference
+
+
+@pytest.mark.parametrize("preset, spread", [("fast", 1.4), ("auto", 1.4), ("surface", 1.0)])
+def test_the_compiled_march_renders_pytorchs_image(preset, spread, library):
+    model = _model(preset, seed=3, spread=spread)
+    assert 0.02 < model.occupancy.occupied_fraction < 0.98  # both kinds of space
+    compiled, reference = _both(model, _rays(3000, seed=4), library)
+    opaque = reference.opacity > 1 - OPAQUE_TRANSMITTANCE
+    assert 0 < opaque.sum() < len(opaque)  # rays that stop and rays that pass through
+    # Each path stops a ray somewhere below 1e-4 transmittance and leaves up to 1e-3 of its
+    # weight to its mean colour, each by its own rule: the images differ by at most the sum.
+    bound = 2 * OPAQUE_TRANSMITTANCE + 2 * SKIPPED_WEIGHT + 1e-5
+    assert (compiled.rgb - reference.rgb).abs().max() < bound
+    assert (compiled.opacity - reference.opacity).abs().max() < 2 * OPAQUE_TRANSMITTANCE + 1e-5
+    far = float(_rays(1, seed=4)[3].max()) + 8.0
+    assert (compiled.depth - reference.depth).abs().max() < 2 * OPAQUE_TRANSMITTANCE * far + 1e-4
+    assert (compiled.rgb - reference.rgb).abs().mean() < 1e-4
+
+
+def test_a_translucent_field_overflows_the_sample_buffer_and_is_marched_again(library, monkeypatch):
+    """A haze of even density over the whole box (σ = 0.5: no ray stops): every ray colours
+    about as many samples as it has steps, and with room for 4096 samples a call the rays left
+    undone are marched again in later calls."""
+    monkeypatch.setattr(compiled_march, "SAMPLES_PER_CALL", 4096)
+    model = _model("fast", seed=5, spread=1.0)
+    field = model.field.config
+    # σ = scale · softplus(Σ plane·line + shift): every one of the 3·C products the same.
+    summed = math.log(math.expm1(0.5 / field.density_scale)) - field.density_shift
+    with torch.no_grad():
+        for parameter in model.field.density_grid.parameters():
+            parameter.fill_(math.sqrt(summed / (3 * field.density_channels)))
+    model.update_occupancy()
+    assert model.occupancy.occupied_fraction == 1.0
+    calls = []
+    original = library.march_render
+
+    class Counting:
+        restype = original.restype
+
+        def __call__(self, *args):
+            calls.append(args[9].value)  # the rays the call marches
+            return original(*args)
+
+    monkeypatch.setattr(library, "march_render", Counting())
+    compiled, reference = _both(model, _rays(1024, seed=6), library)
+    assert len(calls) > 2 and calls[0] == 1024 and all(a > b > 0 for a, b in zip(calls, calls[1:]))  # fewer each time
+    assert float(reference.opacity.min()) < 0.9  # translucent: no early stop
+    assert (compiled.rgb - reference.rgb).abs().max() < 2 * SKIPPED_WEIGHT + 1e-5
+    assert (compiled.opacity - reference.opacity).abs().max() < 1e-4
+
+
+def test_without_a_compiler_the_reason_is_given_and_nothing_is_cached(tmp_path, monkeypatch):
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
+    monkeypatch.setenv(build.CACHE_VARIABLE, str(tmp_path / "cache"))
+    library, reason = build.load_kernel.__wrapped__("march_render")
+    assert library is None and "no-such-cc" in reason and "march_render.c" in reason
+    assert not list((tmp_path / "cache").glob("*.so"))
+
+
+def test_a_kernel_is_built_once_into_the_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv(build.CACHE_VARIABLE, str(tmp_path))
+    first, reason = build.load_kernel.__wrapped__("march_render")
+    assert first is not None, reason
+    built = list(tmp_path.glob("march_render-*.so"))
+    assert len(built) == 1 and not [p for p in tmp_path.iterdir() if p.is_dir()]  # no scratch left
+    stamp = built[0].stat().st_mtime_ns
+    second, _ = build.load_kernel.__wrapped__("march_render")
+    assert second is not None and built[0].stat().st_mtime_ns == stamp
