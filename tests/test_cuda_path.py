@@ -102,7 +102,9 @@ def test_a_training_step_gives_the_cpu_gradients_and_waits_for_the_gpu_a_bounded
     needs their count on the host (three packings: samples with a length, in occupied cells,
     still lit), so a step waits for the GPU a few times; the waits are counted, each printed
     with the line that caused it, and bounded by the count measured on an H200 (12, torch
-    2.11), so that a new wait fails here."""
+    2.11), so that a new wait fails here. Nine of those 12 were then traced, by reading, to the
+    grids' list index (``x[:, [b, a]]``, 3 planes × 3 grid reads a step), since replaced; the
+    bound stays at the measured count until a GPU measures the new one (3 expected)."""
     model = _solid_model().eval()
     rays = _rays(2048, seed=7)
     target = torch.rand(2048, 3, generator=torch.Generator().manual_seed(8))

@@ -108,7 +108,9 @@ class VectorMatrixGrid(nn.Module):
         outputs = []
         for (plane_axes, line_axis), plane, line in zip(_MODES, self.planes, self.lines):
             # grid_sample's grid is (width coord, height coord): plane[h = axis a, w = axis b].
-            plane_grid = x[:, [plane_axes[1], plane_axes[0]]].view(1, points, 1, 2)
+            # Columns stacked, not x[:, [b, a]]: a Python list index is copied to the GPU on
+            # every call, and that copy waits for the GPU (a step reads the grids 3 times).
+            plane_grid = torch.stack([x[:, plane_axes[1]], x[:, plane_axes[0]]], dim=-1).view(1, points, 1, 2)
             line_grid = torch.stack([torch.zeros_like(x[:, line_axis]), x[:, line_axis]], dim=-1).view(1, points, 1, 2)
             plane_feat = F.grid_sample(plane, plane_grid, mode="bilinear", align_corners=True)
             line_feat = F.grid_sample(line, line_grid, mode="bilinear", align_corners=True)
