@@ -138,3 +138,16 @@ def test_a_kernel_is_built_once_into_the_cache(tmp_path, monkeypatch):
     stamp = built[0].stat().st_mtime_ns
     second, _ = build.load_kernel.__wrapped__("march_render")
     assert second is not None and built[0].stat().st_mtime_ns == stamp
+
+
+def test_rays_with_nan_or_infinite_parts_leave_the_others_as_they_were(library):
+    """A float cast to an index must be in range in C: NaN or infinite origins, directions and
+    bounds are clamped before any cast, and the finite rays render as they do alone."""
+    model = _model("fast", seed=3, spread=1.4)
+    origins, directions, near, far = _rays(64, seed=1)
+    with torch.no_grad():
+        alone = model(origins[5:], directions[5:], near[5:], far[5:])[0]
+        origins[0], directions[1], near[2], far[3], origins[4] = float("nan"), float("inf"), float("nan"), float("inf"), 1e30
+        mixed = model(origins, directions, near, far)[0]
+    assert torch.equal(mixed.rgb[5:], alone.rgb) and torch.equal(mixed.depth[5:], alone.depth)
+    assert torch.isfinite(mixed.opacity).all() and bool(((mixed.opacity >= 0) & (mixed.opacity <= 1)).all())

@@ -38,15 +38,13 @@ typedef struct {
     float skipped_weight;   /* weight a ray may leave uncoloured */
 } MarchSettings;
 
-static inline float clampf(float v, float lo, float hi) { return v < lo ? lo : (v > hi ? hi : v); }
+/* NaN goes to lo: a float cast to an integer must be in range (anything else is undefined). */
+static inline float clampf(float v, float lo, float hi) { return !(v >= lo) ? lo : (v > hi ? hi : v); }
 
 static inline int64_t cell_index(const float units[3], const int64_t cells[3]) {
     int64_t ijk[3];
-    for (int axis = 0; axis < 3; ++axis) {
-        float u = floorf(units[axis] < 0.0f ? 0.0f : units[axis]);
-        int64_t i = (int64_t)u;
-        ijk[axis] = i > cells[axis] - 1 ? cells[axis] - 1 : i;
-    }
+    for (int axis = 0; axis < 3; ++axis)  /* clamped to the grid before the cast, NaN to 0 */
+        ijk[axis] = (int64_t)clampf(units[axis], 0.0f, (float)(cells[axis] - 1));
     return (ijk[0] * cells[1] + ijk[1]) * cells[2] + ijk[2];
 }
 
