@@ -7,36 +7,18 @@ CUDA through `grid_sample`, so these also check that the two kernels agree acros
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
 
 import pytest
 import torch
+from test_fast_model import BOX, _solid_grid_model
 
-from nerf_backend.configs.presets import PRESETS
 from nerf_backend.core.cameras import ray_box_intersection
-from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.field_components.grid_encodings import VectorMatrixGrid
-from nerf_backend.models.registry import GridModel
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="torch sees no CUDA device here")
 
-BOX = SceneBounds((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 CUDA = torch.device("cuda")
-
-
-def _solid_model() -> GridModel:
-    """Random smooth blobs of density and empty space, occupancy updated (on the CPU)."""
-    torch.manual_seed(3)
-    model = GridModel(dataclasses.replace(PRESETS["fast"]), BOX)
-    vertices = model.field.vertices
-    model.resize((5, 5, 5))
-    with torch.no_grad():
-        for parameter in model.field.density_grid.parameters():
-            parameter.normal_(0.0, 1.4)
-    model.resize(vertices)
-    model.update_occupancy()
-    return model
 
 
 def _rays(count: int, seed: int) -> tuple[torch.Tensor, ...]:
@@ -71,7 +53,7 @@ def test_cuda_grid_sample_reads_the_grid_as_the_cpu_kernel_does():
 def test_the_model_renders_the_same_image_on_cuda_as_on_the_cpu():
     """Both the training march (with gradients) and the inference path (occupied spans, early
     stop, the dense density volume) give the CPU's colour, opacity and depth."""
-    model = _solid_model().eval()
+    model = _solid_grid_model().eval()
     rays = _rays(4000, seed=4)
     on_cpu = {}
     for device in ("cpu", CUDA):
@@ -105,7 +87,7 @@ def test_a_training_step_gives_the_cpu_gradients_and_waits_for_the_gpu_a_bounded
     2.11), so that a new wait fails here. Nine of those 12 were then traced, by reading, to the
     grids' list index (``x[:, [b, a]]``, 3 planes × 3 grid reads a step), since replaced; the
     bound stays at the measured count until a GPU measures the new one (3 expected)."""
-    model = _solid_model().eval()
+    model = _solid_grid_model().eval()
     rays = _rays(2048, seed=7)
     target = torch.rand(2048, 3, generator=torch.Generator().manual_seed(8))
     gradients = []
