@@ -61,12 +61,15 @@ def _rays(count: int, seed: int):
 
 def _both(model, rays, library):
     """The image through the compiled march (as the model renders on the CPU) and through
-    PyTorch's march, from the same occupancy and density volume."""
+    PyTorch's march, from the same occupancy and density volume; the reference colours each
+    sample with ``colour`` along its own direction, the model once a ray (``ray_colour``)."""
+    directions = rays[1]
     with torch.no_grad():
         compiled = model(*rays)[0]
         march = dict(occupancy=model.render_occupancy(), step=model.step, steps=model.samples_per_ray, background=1.0)
-        reference = render_marched_stopping_early(*rays, density_fn=model._frozen_density, colour_fn=model.field.colour,
-                                                  **march)
+        reference = render_marched_stopping_early(
+            *rays, density_fn=model._frozen_density,
+            ray_colour=lambda x, ray: model.field.colour(x, directions.index_select(0, ray)), **march)
         density, used = model._compiled_density(rays[0].device)
     assert used is library and density.volume.shape[::-1] == model.field.vertices  # the model took the compiled path
     return compiled, reference

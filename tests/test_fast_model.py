@@ -434,3 +434,31 @@ def test_render_caches_follow_weights_swapped_as_module_to_swaps_them():
             parameter.data = torch.zeros_like(parameter.data)  # only the faint shift left, as ``to`` would swap it
         after = model(origins, directions, near, far)[0]
     assert after.opacity.max() < 0.01  # what softplus(shift) leaves over the box
+
+
+@pytest.mark.parametrize("preset, group, settings", [
+    ("fast", "grid", {}), ("fast", "grid", {"view_dependent": False}),
+    ("surface", "surface", {}), ("surface", "surface", {"normal_input": True}),
+    ("surface", "surface", {"reflected_directions": True}),
+])
+def test_ray_colour_is_each_samples_colour_along_its_ray(preset, group, settings):
+    """Inference colours packed samples with ``field.ray_colour(directions)``, which may do a
+    ray's share of the work once a ray (the grid appearance's direction columns): it must give
+    ``colour(x, directions[ray])`` to float32 rounding, whatever the field's colour inputs."""
+    from nerf_backend.models.registry import build_model
+
+    torch.manual_seed(5)
+    config = PRESETS[preset]
+    config = config.with_settings(**{group: dataclasses.replace(getattr(config, group), **settings)})
+    field = build_model(config, BOX).field.eval()
+    with torch.no_grad():
+        for parameter in field.parameters():
+            parameter.normal_(0.0, 0.3)
+        directions = torch.nn.functional.normalize(torch.randn(300, 3), dim=-1)
+        ray = torch.randint(0, 300, (5000,))
+        points = (torch.rand(5000, 3) * 2 - 1) * 0.9
+        expected = field.colour(points, directions.index_select(0, ray))
+        actual = field.ray_colour(directions)(points, ray)
+    assert actual.shape == (5000, 3) and actual.dtype == torch.float32
+    assert torch.allclose(actual, expected, atol=1e-6, rtol=0)
+    assert float(expected.std()) > 0.05  # random weights: colours that differ, not a constant

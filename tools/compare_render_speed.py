@@ -3,6 +3,7 @@ commit against the working tree's, on the same trained run, the same test views 
 threads.
 
     python tools/compare_render_speed.py RUN DATASET [--baseline b4fbebe] [--views 0,5,10,15]
+                                         [--baseline-compiled]
 
 Each side renders every view twice over (alternating, so both meet the same machine); the
 median seconds per view, the mean PSNR against the dataset's test views and the largest pixel
@@ -12,15 +13,18 @@ difference between the two sides are printed. The baseline's ``marcher.py`` and
 with its own skip grid, the current side what the model renders with today
 (``render_occupancy``); where it is the same, both march ``render_occupancy``. The baseline's
 ``VectorMatrixGrid.forward`` (``field_components/grid_encodings.py``) reads the same grids on its
-side. The baseline always renders through PyTorch's march (the baseline's own); the current side
-renders as the model does today: through the compiled march (``kernels/march_render.c``) where it
-applies. The model is the same.
+side. The baseline renders through PyTorch's march (the baseline's own), or with
+``--baseline-compiled`` through the baseline's ``compiled_march.py`` (today's kernel); the current
+side renders as the model does today: through the compiled march (``kernels/march_render.c``)
+where it applies. A baseline march that takes ``colour_fn(points, directions)`` (before
+``ray_colour``) is given the field's ``colour``. The model is the same.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib.util
+import inspect
 import statistics
 import subprocess
 import sys
@@ -34,7 +38,9 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import nerf_backend.model_components.marcher as marcher  # noqa: E402
 import nerf_backend.models.marched as marched  # noqa: E402
+from nerf_backend.core import field_functions  # noqa: E402
 from nerf_backend.data.dataset import load_split  # noqa: E402
 from nerf_backend.data.run_folder import RunFolder  # noqa: E402
 from nerf_backend.evaluation.inference import load_trained_model  # noqa: E402
@@ -77,27 +83,51 @@ def baseline_march(revision: str, model):
     return render
 
 
+def with_colour_fn(march, model):
+    """``march`` as the model calls it today (``ray_colour=``), where the baseline's march took
+    ``colour_fn(points, directions)`` instead: it gets the field's ``colour``."""
+    if "colour_fn" not in inspect.signature(march).parameters:
+        return march
+
+    def render(*args, ray_colour, **kwargs):
+        return march(*args, colour_fn=model.field.colour, **kwargs)
+
+    return render
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("run", type=Path)
     parser.add_argument("dataset", type=Path)
     parser.add_argument("--baseline", default="b4fbebe", help="the commit to compare with (default: before issue 24)")
     parser.add_argument("--views", default="0,5,10,15")
+    parser.add_argument("--baseline-compiled", action="store_true",
+                        help="the baseline renders through its own compiled march, not PyTorch's")
     args = parser.parse_args()
     model, ray_bounds, _ = load_trained_model(RunFolder(args.run), torch.device("cpu"))
     split = load_split(args.dataset, "test")
     views = [int(v) for v in args.views.split(",")]
-    sides = {"baseline": baseline_march(args.baseline, model), "current": marched.render_marched_stopping_early}
+    sides = {"baseline": with_colour_fn(baseline_march(args.baseline, model), model),
+             "current": marched.render_marched_stopping_early}
+    compiled = {"baseline": marched.render_marched_compiled, "current": marched.render_marched_compiled}
+    if args.baseline_compiled:
+        # Baselines before core/field_functions.py imported ColourFn from the marcher.
+        marcher.ColourFn = field_functions.ColourFn
+        compiled["baseline"] = with_colour_fn(_load_baseline(
+            args.baseline, "model_components/compiled_march.py",
+            "nerf_backend.model_components._baseline_compiled_march").render_marched_compiled, model)
     grid_reads = {"baseline": _load_baseline(args.baseline, "field_components/grid_encodings.py",
                                              "nerf_backend.field_components._baseline_grid_encodings"
                                              ).VectorMatrixGrid.forward,
                   "current": VectorMatrixGrid.forward}
-    library = {"baseline": lambda: (None, "the baseline side"), "current": marched.compiled_march_library}
+    library = {"baseline": marched.compiled_march_library if args.baseline_compiled
+               else (lambda: (None, "the baseline side")), "current": marched.compiled_march_library}
     seconds: dict[str, list[float]] = {name: [] for name in sides}
     images: dict[str, list[np.ndarray]] = {name: [] for name in sides}
     for repeat in range(2):
         for name, march in sides.items():
             marched.render_marched_stopping_early = march
+            marched.render_marched_compiled = compiled[name]
             VectorMatrixGrid.forward = grid_reads[name]
             marched.compiled_march_library = library[name]
             for view in views:
@@ -107,6 +137,7 @@ def main() -> int:
                 if repeat == 0:
                     images[name].append(image.rgb)
     marched.render_marched_stopping_early = sides["current"]
+    marched.render_marched_compiled = compiled["current"]
     VectorMatrixGrid.forward = grid_reads["current"]
     marched.compiled_march_library = library["current"]
     width, height = split.intrinsics.width, split.intrinsics.height

@@ -26,14 +26,12 @@ Example:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 from torch import Tensor
 
+from ..core.field_functions import ColourFn
 from .texture_space import TexelCover
-
-ColourFn = Callable[[Tensor, Tensor], Tensor]
 
 VIEWS_PER_TEXEL = 8
 # A camera faces a point when the direction to it is within this cosine of the normal's side.

@@ -22,7 +22,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -30,15 +29,13 @@ from skimage.measure import marching_cubes
 from torch import Tensor
 
 from ..core.errors import NerfError
+from ..core.field_functions import ColourFn, DensityFn
 from ..core.files import write_json
 from ..core.scene_bounds import SceneBounds
 from ..data.dataset import load_scene_profile
 from ..data.run_folder import RunFolder
 from ..model_components.ray_bounds import PROTOCOL_BOX, RayBounds
 from .inference import load_trained_model
-
-DensityFn = Callable[[Tensor], Tensor]
-ColourFn = Callable[[Tensor, Tensor], Tensor]
 
 
 @dataclass

@@ -11,6 +11,7 @@ from typing import Callable, NamedTuple
 import torch
 from torch import Tensor, nn
 
+from ..core.field_functions import RayColourFn
 from ..core.scene_bounds import SceneBounds
 
 
@@ -75,6 +76,13 @@ class MarchableField(nn.Module):
 
     def colour(self, x: Tensor, directions: Tensor) -> Tensor:
         raise NotImplementedError
+
+    def ray_colour(self, directions: Tensor) -> RayColourFn:
+        """``colour`` for samples packed from rays of these ``directions [R, 3]`` (inference's
+        marchers): a function of the samples' points ``[P, 3]`` and rays ``[P]`` (indices into
+        ``directions``). A field whose colour does work that is the same along a ray does it
+        once a ray here."""
+        return lambda x, ray: self.colour(x, directions.index_select(0, ray))
 
     def forward(self, x: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
         """Density and colour of the same points in one call (a field that shares work

@@ -6,8 +6,10 @@ field's are this one."""
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..core.field_functions import RayColourFn
 from ..field_components.encodings import PositionalEncoding
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
 from .base import SampleCost, mlp_flops
@@ -43,6 +45,28 @@ class GridAppearance:
         if extra is not None:
             features.append(extra.to(features[0].dtype))
         return torch.sigmoid(self.colour_mlp(torch.cat(features, dim=-1) if len(features) > 1 else features[0]).float())
+
+    def ray_colour(self, directions: Tensor) -> RayColourFn:
+        """``MarchableField.ray_colour``: the viewing direction's share of the colour MLP's
+        first layer (its encoding times those columns, plus the bias) is the same for every
+        sample of a ray, so it is computed once a ray and each sample adds its ray's row
+        (measured on a glass view at 800×800, 2.5 M samples of 640 000 rays: colour 0.61 →
+        0.49 s). The same sums as ``colour``, in another order."""
+        first = self.colour_mlp[0]
+        appearance = self.config.appearance_dims
+        if not self.config.view_dependent or first.in_features != appearance + self.direction_encoding.out_dims:
+            return super().ray_colour(directions)  # no direction, or features of the field's own besides
+        per_ray = F.linear(self.direction_encoding(directions), first.weight[:, appearance:], first.bias)
+        appearance_weight = first.weight[:, :appearance].t()
+        rest = self.colour_mlp[1:]
+
+        def colour(x: Tensor, ray: Tensor) -> Tensor:
+            features = self.appearance_basis(self.appearance_grid(self.normalise(x)))
+            hidden = torch.addmm(per_ray.index_select(0, ray).to(features.dtype), features,
+                                 appearance_weight.to(features.dtype))
+            return torch.sigmoid(rest(hidden).float())
+
+        return colour
 
     def appearance_cost(self) -> SampleCost:
         """One colour sample: each channel of a component reads 4 plane and 2 line values, and

@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from scipy import ndimage
 from torch import Tensor, nn
 
+from ..core.field_functions import RayColourFn
 from ..core.scene_bounds import SceneBounds, vertices_for
 from ..data.occupancy_prior import OccupancyPrior
 from ..field_components.dense_grid import DenseGrid, Vertices
@@ -171,6 +172,11 @@ class SurfaceField(GridAppearance, MarchableField):
         if config.reflected_directions:
             directions = directions - 2 * (directions * normal).sum(dim=-1, keepdim=True) * normal
         return self.colour_with(x, directions, normal if config.normal_input else None)
+
+    def ray_colour(self, directions: Tensor) -> RayColourFn:
+        if self.config.normal_input or self.config.reflected_directions:
+            return MarchableField.ray_colour(self, directions)  # the direction depends on each sample's normal
+        return super().ray_colour(directions)
 
     def surface_function(self) -> Callable[[Tensor], Tensor]:
         """``-signed_distance``: the mesh is the distance's zero level set."""

@@ -21,7 +21,7 @@ Example (where a C compiler is found):
     >>> out = render_marched_compiled(
     ...     torch.tensor([[0.0, -3.0, 0.0]]), torch.tensor([[0.0, 1.0, 0.0]]),
     ...     torch.tensor([2.0]), torch.tensor([4.0]), density=solid,
-    ...     colour_fn=lambda x, d: torch.zeros_like(x), occupancy=grid, step=0.05, steps=41,
+    ...     ray_colour=lambda x, ray: torch.zeros_like(x), occupancy=grid, step=0.05, steps=41,
     ...     background=1.0, library=library)
     >>> round(float(out.opacity), 3), round(float(out.rgb.sum()), 3)  # a black, opaque cube
     (1.0, 0.0)
@@ -36,9 +36,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..core.field_functions import RayColourFn
 from ..core.stage_timer import stage
 from ..kernels.build import load_kernel
-from .marcher import OPAQUE_TRANSMITTANCE, SKIPPED_WEIGHT, ColourFn
+from .marcher import OPAQUE_TRANSMITTANCE, SKIPPED_WEIGHT
 from .occupancy import OccupancyGrid
 from .render_output import RenderOutput
 
@@ -101,7 +102,7 @@ def _pointer(tensor: Tensor) -> ctypes.c_void_p:
 @torch.no_grad()
 def render_marched_compiled(
     origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, *, density: VolumeDensity,
-    colour_fn: ColourFn, occupancy: OccupancyGrid, step: float, steps: int, background: Tensor | float,
+    ray_colour: RayColourFn, occupancy: OccupancyGrid, step: float, steps: int, background: Tensor | float,
     library: ctypes.CDLL,
 ) -> RenderOutput:
     """``render_marched_stopping_early``'s image, each ray marched by the compiled kernel: the
@@ -150,7 +151,7 @@ def render_marched_compiled(
                 for first in range(thread * region, thread * region + count, COLOUR_BATCH):
                     part = slice(first, min(first + COLOUR_BATCH, thread * region + count))
                     ray = sample_ray[part]
-                    colour = colour_fn(sample_position[part], directions.index_select(0, ray)).to(torch.float32)
+                    colour = ray_colour(sample_position[part], ray).to(torch.float32)
                     rgb.index_add_(0, ray, sample_weight[part, None] * colour)
         pending = (done == 0).nonzero().squeeze(1)
     transmittance, depth, skipped, coloured_weight = per_ray

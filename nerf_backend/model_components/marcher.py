@@ -3,8 +3,9 @@
 The caller passes functions, the marcher samples and renders: ``density_fn(points [P, 3]) ->
 [P]`` (without gradients: which samples light reaches), ``field_fn(points, directions) ->
 (density [P], colour [P, 3])`` (the samples that count, with gradients; one call, so a field
-can share work between the two) or ``colour_fn(points, directions) -> [P, 3]``, plus an
-``OccupancyGrid`` that says where density can be. Nothing here knows what the field is.
+can share work between the two) or, for inference, ``ray_colour(points, ray) -> [P, 3]`` of
+samples packed per ray (``core/field_functions.py``), plus an ``OccupancyGrid`` that says where
+density can be. Nothing here knows what the field is.
 
 Two renders share the same samples: ``render_marched`` for training (gradients, only for
 samples light reaches) and ``render_marched_stopping_early`` for inference (only the spans an
@@ -26,20 +27,15 @@ Example:
 
 from __future__ import annotations
 
-from typing import Callable
-
 import torch
 from torch import Tensor
 
+from ..core.field_functions import DensityFn, FieldFn, RayColourFn
 from ..core.stage_timer import stage
 from .occupancy import OccupancyGrid
 from .render_output import RenderOutput
 from .samplers import interval_midpoints
 from .volume_rendering import accumulate, composite_rgb, expected_depth, render_weights
-
-DensityFn = Callable[[Tensor], Tensor]
-ColourFn = Callable[[Tensor, Tensor], Tensor]
-FieldFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
 
 # A ray whose transmittance has fallen below this is opaque: what it would still add is under
 # 1e-4 of a pixel, so inference stops it and training evaluates no colour past that point.
@@ -174,7 +170,7 @@ def occupied_spans(occupancy: OccupancyGrid, origins: Tensor, directions: Tensor
 @torch.no_grad()
 def render_marched_stopping_early(
     origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, *, density_fn: DensityFn,
-    colour_fn: ColourFn, occupancy: OccupancyGrid, step: float, steps: int, background: Tensor | float,
+    ray_colour: RayColourFn, occupancy: OccupancyGrid, step: float, steps: int, background: Tensor | float,
 ) -> RenderOutput:
     """``render_marched``'s image without gradients, over the same fixed steps, marched only
     where the occupancy grid allows and stopped once a ray is opaque.
@@ -233,7 +229,7 @@ def render_marched_stopping_early(
         coloured_weight.index_add_(0, active, (weights * coloured).sum(dim=1))
         wanted = coloured.view(-1).index_select(0, index)
         with stage("colour", items=wanted.sum()):
-            colour = colour_fn(positions[wanted], ray_directions.index_select(0, sample_ray[wanted]))
+            colour = ray_colour(positions[wanted], active.index_select(0, sample_ray[wanted]))
         rgb.index_add_(0, active, accumulate(weights * coloured, colour.new_zeros((deltas.numel(), 3)).index_put_(
             (index[wanted],), colour).view(*deltas.shape, 3)))
         depth.index_add_(0, active, expected_depth(weights, t_mid))

@@ -224,9 +224,10 @@ class MarchedModel(Model):
                 density, library = compiled
                 del march["density_fn"]
                 return [render_marched_compiled(origins, directions, t_near, t_far, density=density,
-                                                colour_fn=self.field.colour, library=library, **march)]
-            return [render_marched_stopping_early(origins, directions, t_near, t_far, colour_fn=self.field.colour,
-                                                  **march)]
+                                                ray_colour=self.field.ray_colour(directions), library=library,
+                                                **march)]
+            return [render_marched_stopping_early(origins, directions, t_near, t_far,
+                                                  ray_colour=self.field.ray_colour(directions), **march)]
         offset = None
         if self.training:  # one random offset per ray: unbiased, and every step still covered
             offset = torch.rand((origins.shape[0], 1), generator=generator, device=origins.device,

@@ -1,0 +1,20 @@
+"""The functions of a field that marchers, mesh extraction and baking are given (nerfacc's
+style: the caller passes the field as functions, and the algorithm knows nothing else of it).
+Every point is in world space; every function returns float values, one row a point."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+from torch import Tensor
+
+# density(points [P, 3]) -> [P]
+DensityFn = Callable[[Tensor], Tensor]
+# colour(points [P, 3], directions [P, 3]) -> [P, 3]: each point seen along its own direction.
+ColourFn = Callable[[Tensor, Tensor], Tensor]
+# field(points [P, 3], directions [P, 3]) -> (density [P], colour [P, 3]) in one call.
+FieldFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
+# colour(points [P, 3], ray [P]) -> [P, 3] of samples packed from a batch of rays: ``ray`` indexes
+# the rays the function was made for (``MarchableField.ray_colour(directions)``), so work that
+# is the same for every sample of a ray is done once a ray.
+RayColourFn = Callable[[Tensor, Tensor], Tensor]
