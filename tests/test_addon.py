@@ -235,6 +235,7 @@ def test_the_nerf_asset_is_baked_as_a_job_imported_and_rendered_with_f12(session
     assert any(state == "running" and detail.startswith("Export:") for state, _, detail in asset["states"])
     assert asset["triangles"] <= 5000 and asset["texture"] == [512, 512]
     assert {"TEX_IMAGE", "EMISSION"} <= set(asset["material_nodes"])  # the importer's unlit material
+    assert asset["texture_extension"] == "EXTEND"  # the glTF's clamp: charts at the edges keep their colour
     radius = session["mesh"]["radius"]
     for ours, truth in zip(sum(asset["bounds_asset"], []), sum(asset["bounds_truth"], [])):
         assert abs(ours - truth) < 0.2 * radius, (asset["bounds_asset"], asset["bounds_truth"])

@@ -32,6 +32,9 @@ from ..core.files import atomic_write
 
 UNLIT = "KHR_materials_unlit"
 _LINEAR, _LINEAR_MIPMAP_LINEAR = 9729, 9987
+# The atlas's charts reach the texture's edges: glTF's default wrap (repeat) would filter them
+# with texels of the opposite edge's charts, so the texture is clamped (Blender: Extend).
+CLAMP_TO_EDGE = 33071
 
 
 def blender_to_gltf(points: Tensor) -> Tensor:
@@ -85,7 +88,8 @@ def write_glb(path: Path, vertices: Tensor, normals: Tensor, uv: Tensor, faces: 
         scene=0, scenes=[pygltflib.Scene(nodes=[0])], nodes=[pygltflib.Node(mesh=0, name=name)],
         meshes=[pygltflib.Mesh(name=name, primitives=[primitive])], materials=[material],
         textures=[pygltflib.Texture(sampler=0, source=0)],
-        samplers=[pygltflib.Sampler(magFilter=_LINEAR, minFilter=_LINEAR_MIPMAP_LINEAR)],
+        samplers=[pygltflib.Sampler(magFilter=_LINEAR, minFilter=_LINEAR_MIPMAP_LINEAR, wrapS=CLAMP_TO_EDGE,
+                                   wrapT=CLAMP_TO_EDGE)],
         images=[pygltflib.Image(bufferView=4, mimeType="image/png", name=f"{name} baked colour")],
         accessors=accessors, bufferViews=views, buffers=[pygltflib.Buffer(byteLength=len(blob))],
         extensionsUsed=[UNLIT],

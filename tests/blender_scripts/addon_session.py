@@ -244,11 +244,13 @@ report["asset"]["final"] = {"state": state.state, "detail": state.detail, "error
 asset = bpy.data.objects.get(report["asset"]["final"]["imported"] or "")
 if asset is not None:
     material = asset.active_material
-    images = [n.image for n in material.node_tree.nodes if n.type == "TEX_IMAGE" and n.image] if material else []
+    image_nodes = [n for n in material.node_tree.nodes if n.type == "TEX_IMAGE" and n.image] if material else []
+    images = [n.image for n in image_nodes]
     report["asset"].update(bounds_truth=world_bounds(originals), bounds_asset=world_bounds([asset]),
                            triangles=sum(len(p.vertices) - 2 for p in asset.data.polygons),
                            material_nodes=sorted(n.type for n in material.node_tree.nodes) if material else [],
-                           texture=list(images[0].size) if images else None)
+                           texture=list(images[0].size) if images else None,
+                           texture_extension=image_nodes[0].extension if image_nodes else None)
 
     def f12(engine: str, shown: list, view_transform: str, stem: str) -> str:
         """The scene rendered by ``engine`` with only ``shown`` visible, on a transparent film."""
