@@ -100,3 +100,22 @@ def test_old_runs_keep_their_step_schedule(preset):
     stored = PRESETS[preset].to_dict()
     del stored["schedule"]
     assert TrainConfig.from_dict(stored).schedule == "iterations"
+
+
+def test_a_budget_too_short_for_the_final_grid_keeps_it_a_growth_coarser(tiny_demo_dataset, tmp_path):
+    """With more steps asked of the last growth than the budget leaves, the run ends on the
+    grid one growth short of the final size, says so once, and a resumed run keeps it."""
+    fast = PRESETS["fast"]
+    held = ("--set", "grid.last_growth_min_steps=1000000")
+    run = tmp_path / "run"
+    result = run_python("-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "fast", "--out", str(run),
+                        "--max-seconds", "4", "--no-progress", "--set", "validate_every=100000", *held)
+    penultimate = round(fast.grid.initial_resolution * (fast.grid.resolution / fast.grid.initial_resolution)
+                        ** ((len(fast.grid.upsample_iterations) - 1) / len(fast.grid.upsample_iterations)))
+    planes = torch.load(run / "checkpoint.pt", weights_only=True)["model"]["field.density_grid.planes.0"]
+    assert max(planes.shape[-2:]) == penultimate < fast.grid.resolution
+    assert result.stderr.count(f"grid kept at {penultimate} vertices a side, not grown to {fast.grid.resolution}") == 1
+    run_python("-m", "nerf_backend", "train", str(tiny_demo_dataset), "--out", str(run), "--resume",
+               "--max-seconds", "6", "--no-progress")
+    planes = torch.load(run / "checkpoint.pt", weights_only=True)["model"]["field.density_grid.planes.0"]
+    assert max(planes.shape[-2:]) == penultimate

@@ -462,3 +462,27 @@ def test_ray_colour_is_each_samples_colour_along_its_ray(preset, group, settings
     assert actual.shape == (5000, 3) and actual.dtype == torch.float32
     assert torch.allclose(actual, expected, atol=1e-6, rtol=0)
     assert float(expected.std()) > 0.05  # random weights: colours that differ, not a constant
+
+
+def test_the_last_growth_waits_for_the_steps_a_budget_leaves():
+    """grid.last_growth_min_steps: the growth to the final size happens only with that many
+    steps left (said once when held back); the earlier growths, and a run without a budget
+    (steps_left None), grow as scheduled."""
+    grid = dataclasses.replace(PRESETS["fast"].grid, last_growth_min_steps=1500)
+    config = PRESETS["fast"].with_settings(grid=grid)
+    first, *_, last = grid.upsample_iterations
+    model = GridModel(config, BOX)
+    assert model.before_step(0, first, steps_left=10.0) is True  # not the last growth: it grows
+    penultimate = model.field.resolution_after(last - 1)
+    model.field.resize(model.field.vertices_at(penultimate))
+    assert model.before_step(0, last, steps_left=1499.0) is False
+    assert model.field.resolution == penultimate < grid.resolution
+    note = model.take_note()
+    assert f"grid kept at {penultimate} vertices a side, not grown to {grid.resolution}" in note
+    assert "about 1499 steps are left" in note and "waits for 1500" in note
+    assert model.before_step(0, last + 50, steps_left=1400.0) is False and model.take_note() is None  # said once
+    assert model.before_step(0, last + 60, steps_left=1500.0) is True  # enough left: it grows
+    assert model.field.resolution == grid.resolution
+    unbudgeted = GridModel(config, BOX)
+    unbudgeted.field.resize(unbudgeted.field.vertices_at(penultimate))
+    assert unbudgeted.before_step(0, last, steps_left=None) is True and unbudgeted.take_note() is None

@@ -145,11 +145,16 @@ class MarchableField(nn.Module):
         images to); None once it holds its final detail, or if it never grows."""
         return None
 
-    def before_step(self, scheduled: int) -> bool:
+    def before_step(self, scheduled: int, steps_left: float | None = None) -> bool:
         """Schedules of the field's own (a grid's upsampling), at ``scheduled`` steps into
-        the run's schedule (``Model.before_step``). True when the parameters
-        were replaced, so the optimiser and the occupancy grid must follow."""
+        the run's schedule, ``steps_left`` the steps a time budget still allows
+        (``Model.before_step``). True when the parameters were replaced, so the optimiser and
+        the occupancy grid must follow."""
         return False
+
+    def take_note(self) -> str | None:
+        """What the field's schedule decided that the user should hear (once), or None."""
+        return None
 
     def match_state(self, state: dict[str, Tensor]) -> bool:
         """Take the shapes a checkpoint's ``state`` (this field's entries) was saved with.

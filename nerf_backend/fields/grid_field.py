@@ -33,6 +33,10 @@ class GridFieldConfig:
     # one step at each of upsample_iterations (cheap early steps, detail later).
     initial_resolution: int = 128
     upsample_iterations: tuple[int, ...] = ()
+    # Under a time budget, the last growth (to `resolution`) waits for a run that can still take
+    # this many steps at its rate so far: a finer grid needs steps to fill in, and with fewer the
+    # grid stays one growth coarser (auto's rule, training/auto.py). 0: it always grows.
+    last_growth_min_steps: int = 0
     density_channels: int = 16
     appearance_channels: int = 24
     appearance_dims: int = 27
@@ -60,6 +64,8 @@ class GridField(GridAppearance, MarchableField):
         vertices = self.vertices_at(config.initial_resolution)
         self.density_grid = VectorMatrixGrid(config.density_channels, vertices)
         self.build_appearance(config, vertices)
+        self._note: str | None = None
+        self._held = False
 
     @property
     def resolution(self) -> int:
@@ -144,12 +150,32 @@ class GridField(GridAppearance, MarchableField):
             return None
         return min(side / cells for side, cells in zip(self.extent, self.occupancy_cells()))
 
-    def before_step(self, scheduled: int) -> bool:
-        """Upsample on schedule (coarse-to-fine)."""
-        if self.resolution_after(scheduled) == self.resolution:
+    def before_step(self, scheduled: int, steps_left: float | None = None) -> bool:
+        """Upsample on schedule (coarse-to-fine); the last growth only with
+        ``last_growth_min_steps`` left in the budget."""
+        resolution = self.resolution_after(scheduled)
+        if resolution == self.resolution:
             return False
-        self.resize(self.vertices_at(self.resolution_after(scheduled)))
+        if resolution == self.config.resolution and not self._worth_growing(steps_left):
+            return False
+        self.resize(self.vertices_at(resolution))
         return True
+
+    def _worth_growing(self, steps_left: float | None) -> bool:
+        """Whether the budget leaves the final grid the steps it needs (said once when not)."""
+        wanted = self.config.last_growth_min_steps
+        if wanted <= 0 or steps_left is None or steps_left >= wanted:
+            return True
+        if not self._held:
+            self._held = True
+            self._note = (f"grid kept at {self.resolution} vertices a side, not grown to {self.config.resolution}: "
+                          f"about {steps_left:.0f} steps are left in the time budget, and the last growth waits "
+                          f"for {wanted} (grid.last_growth_min_steps)")
+        return False
+
+    def take_note(self) -> str | None:
+        note, self._note = self._note, None
+        return note
 
     def match_state(self, state: dict[str, Tensor]) -> bool:
         """Take the vertices a checkpoint was saved with (also cubic grids from before each

@@ -250,7 +250,7 @@ class SurfaceField(GridAppearance, MarchableField):
             return None
         return min(self._cell_sides(self.vertices))
 
-    def before_step(self, scheduled: int) -> bool:
+    def before_step(self, scheduled: int, steps_left: float | None = None) -> bool:
         """β on its schedule, and the grids' growth."""
         self.beta.fill_(self.beta_after(scheduled))
         config = self.config

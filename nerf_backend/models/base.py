@@ -92,13 +92,18 @@ class Model(nn.Module):
         """The optimiser's groups, in a fixed order (checkpoints store the optimiser by it)."""
         return [ParameterGroup("networks", list(self.parameters()), "learning_rate")]
 
-    def before_step(self, iteration: int, scheduled: int) -> bool:
+    def before_step(self, iteration: int, scheduled: int, steps_left: float | None = None) -> bool:
         """Called before each training step: ``iteration`` counts the steps taken (what
         per-step upkeep follows), ``scheduled`` is the run's place in its preset's schedule,
         in that schedule's steps (what growth follows; under a time budget it is the share
-        of the budget spent, so the schedule ends with the budget). True when the parameters
-        were replaced (the optimiser must be rebuilt)."""
+        of the budget spent, so the schedule ends with the budget), ``steps_left`` the steps
+        the budget still allows at the run's rate so far (None without a budget). True when
+        the parameters were replaced (the optimiser must be rebuilt)."""
         return False
+
+    def take_note(self) -> str | None:
+        """What the model's schedule decided that the user should hear (once), or None."""
+        return None
 
     def coarse_detail(self) -> float | None:
         """The finest detail (world units) the model holds now while it is still growing

@@ -154,10 +154,10 @@ class MarchedModel(Model):
         return [ParameterGroup("encoding", encoding, "learning_rate"),
                 ParameterGroup("networks", networks, "network_learning_rate")]
 
-    def before_step(self, iteration: int, scheduled: int) -> bool:
+    def before_step(self, iteration: int, scheduled: int, steps_left: float | None = None) -> bool:
         """The field's schedule (a grid's upsampling), then the occupancy grid's refresh
         (every ``occupancy_every`` steps taken)."""
-        replaced = self.field.before_step(scheduled)
+        replaced = self.field.before_step(scheduled, steps_left)
         if replaced:
             self._fit_sampling_to_field()
             self.update_occupancy()
@@ -167,6 +167,9 @@ class MarchedModel(Model):
 
     def coarse_detail(self) -> float | None:
         return self.field.coarse_detail()
+
+    def take_note(self) -> str | None:
+        return self.field.take_note()
 
     def match_state(self, state: dict[str, Tensor]) -> None:
         field_state = {key.removeprefix("field."): value for key, value in state.items() if key.startswith("field.")}

@@ -10,6 +10,8 @@ run's ``config.json``:
 - detail: the grid needs no vertex finer than the footprint of a pixel on the scene
   (Nyquist for the training images), so its resolution is the box size over that footprint;
 - samples: one march step per grid cell covers the depth range at that same detail;
+- time: under a time budget the grid's last growth waits for steps enough to fill it in; a
+  budget too short for the final grid keeps it one growth coarser;
 - background: a transparent film gives an alpha channel, so training composites over
   random colours and the alpha decides what is background;
 - empty space: where the dataset carries Blender's own geometry as an occupancy prior,
@@ -31,6 +33,11 @@ from ..data.dataset import DatasetSplit
 MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
 # Which of the prior's fills auto uses (measured with bench: see the README).
 PRIOR_KIND = "solid"
+# Steps a time budget must still allow (at the run's rate so far) for the grid's last growth:
+# RobotExpressive at 800×800 without a prior had about 1 000 left at 60 s (the coarser grid then
+# better) and 2 200 at 120 s (the final grid as good); held back with 60 s, three real scenes
+# scored 0.19-1.17 dB more (docs/benchmarks_800px.md, "auto sizes its grid for the budget").
+LAST_GROWTH_MIN_STEPS = 1500
 # occupancy_prior's value for "PRIOR_KIND where the dataset has a prior, else none".
 AVAILABLE_PRIOR = "available"
 
@@ -93,6 +100,11 @@ def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profil
                         vertices=list(vertices))
     initial = min(base.grid.initial_resolution, resolution)
     schedule = base.grid.upsample_iterations if resolution > initial else ()
+    last_growth_min_steps = choose(
+        "last_growth", "grid.last_growth_min_steps", LAST_GROWTH_MIN_STEPS if schedule else 0,
+        (f"under a time budget the grid grows to its final {resolution} vertices only with {LAST_GROWTH_MIN_STEPS} "
+         "steps left at the run's rate so far (a finer grid needs steps to fill in), else it stays one growth "
+         "coarser; without a budget it always grows" if schedule else "the grid does not grow"))
 
     transparent = bool((split.rgba[..., 3] < 255).any())
     random_background = choose(
@@ -108,7 +120,8 @@ def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profil
          if has_prior else "the dataset has no occupancy prior: empty space is found from the field's own density"))
 
     grid = dataclasses.replace(base.grid, resolution=resolution, initial_resolution=initial,
-                               upsample_iterations=schedule, view_dependent=view_dependent)
+                               upsample_iterations=schedule, view_dependent=view_dependent,
+                               last_growth_min_steps=last_growth_min_steps)
     config = base.with_settings(preset="auto", grid=grid, random_background=random_background,
                                 occupancy_prior=prior)
     diagonal = math.sqrt(sum(side ** 2 for side in sides))

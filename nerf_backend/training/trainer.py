@@ -401,8 +401,11 @@ class _Training:
                                               pixel_centres(width, pixel_index))
             t_near, t_far = self.plan.ray_bounds(origins, directions)
         with stage("upkeep"):  # the model's schedule: grid growth, occupancy refreshes
-            if model.before_step(steps, scheduled):
+            if model.before_step(steps, scheduled, self._steps_left()):
                 self.optimizer = _optimizer(model, config)  # the parameters were replaced (a grid upsampled)
+            note = model.take_note()
+            if note is not None:
+                self.progress.note(note)
             # After any rebuild: a new optimiser starts at the initial rates.
             decay = config.learning_rate_decay(scheduled)
             for group in self.optimizer.param_groups:
@@ -454,6 +457,17 @@ class _Training:
                                + (f" (1/{factor} size, the model's detail)" if factor > 1 else " (full size)"))
             self.image_factor = factor
         return level
+
+    def _steps_left(self) -> float | None:
+        """Under a time budget, the steps the run can still take at its rate so far (the whole
+        run's, so a resumed run knows it at once); None by iterations or before any step."""
+        budget = self.plan.schedule_seconds
+        if budget is None or self.train_seconds <= 0:
+            return None
+        left = self.iteration / self.train_seconds * max(budget - self.train_seconds, 0.0)
+        if self.plan.stop_at_iterations:
+            left = min(left, self.config.iterations - self.iteration)
+        return left
 
     def _scheduled_step(self, steps: int) -> int:
         """Where this start of the run is in its schedule after ``steps`` steps: by the
