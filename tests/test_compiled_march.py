@@ -32,12 +32,15 @@ def library():
     return found
 
 
-def _model(preset: str, seed: int, spread: float):
+def _model(preset: str, seed: int, spread: float, **surface):
     """A model of ``preset`` with random smooth colour and, but for the surface field (which
-    starts as a sphere), random smooth blobs of density (``spread``: their contrast),
-    occupancy updated, in inference mode."""
+    starts as a sphere), random smooth blobs of density (``spread``: their contrast; the surface
+    field's distance is multiplied by it instead), occupancy updated, in inference mode."""
     torch.manual_seed(seed)
-    model = build_model(dataclasses.replace(PRESETS[preset]), BOX)
+    config = PRESETS[preset]
+    if surface:  # the surface field's settings (its opacity)
+        config = config.with_settings(surface=dataclasses.replace(config.surface, **surface))
+    model = build_model(config, BOX)
     vertices = model.field.vertices
     model.resize((5, 6, 4))
     kept = {id(p) for p in getattr(model.field, "sdf_grid", torch.nn.Module()).parameters()}
@@ -46,6 +49,9 @@ def _model(preset: str, seed: int, spread: float):
             if id(parameter) not in kept:
                 parameter.normal_(0.0, spread)
     model.resize(vertices)
+    if kept:  # the sphere, coarsened by the resizing above, is shallow: spread deepens it
+        with torch.no_grad():
+            model.field.sdf_grid.values.mul_(spread)
     model.update_occupancy()
     return model.eval()
 
@@ -75,10 +81,11 @@ def _both(model, rays, library):
     return compiled, reference
 
 
-@pytest.mark.parametrize("preset, spread", [("fast", 1.4), ("auto", 1.4), ("surface", 1.0)])
-def test_the_compiled_march_renders_pytorchs_image(preset, spread, library):
-    model = _model(preset, seed=3, spread=spread)
-    assert 0.02 < model.occupancy.occupied_fraction < 0.98  # both kinds of space
+@pytest.mark.parametrize("preset, spread, surface", [("fast", 1.4, {}), ("auto", 1.4, {}), ("surface", 1.0, {}),
+                                                     ("surface", 20.0, {"opacity": "neus"})])
+def test_the_compiled_march_renders_pytorchs_image(preset, spread, surface, library):
+    model = _model(preset, seed=3, spread=spread, **surface)
+    assert 0.01 < model.occupancy.occupied_fraction < 0.98  # both kinds of space
     compiled, reference = _both(model, _rays(3000, seed=4), library)
     opaque = reference.opacity > 1 - OPAQUE_TRANSMITTANCE
     assert 0 < opaque.sum() < len(opaque)  # rays that stop and rays that pass through

@@ -158,6 +158,9 @@ class _Ball(torch.nn.Module):
     def density(self, x):
         return torch.where(x.norm(dim=-1) < 0.5, self.density_value, 0.0)
 
+    def density_along(self, x, d):
+        return self.density(x)
+
     def colour(self, x, d):
         return self.colour_value.expand(x.shape[0], 3)
 
@@ -168,7 +171,7 @@ class _Ball(torch.nn.Module):
     def density_volume(self):
         return None
 
-    def density_from_volume(self, volume, x):
+    def density_from_volume(self, volume, x, directions=None):
         return self.density(x)
 
 

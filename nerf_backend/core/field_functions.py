@@ -10,6 +10,9 @@ from torch import Tensor
 
 # density(points [P, 3]) -> [P]
 DensityFn = Callable[[Tensor], Tensor]
+# density(points [P, 3], directions [P, 3]) -> [P] of samples seen along those directions: what
+# marchers read (a surface field's NeuS opacity depends on the direction; other fields ignore it).
+SampleDensityFn = Callable[[Tensor, Tensor], Tensor]
 # colour(points [P, 3], directions [P, 3]) -> [P, 3]: each point seen along its own direction.
 ColourFn = Callable[[Tensor, Tensor], Tensor]
 # field(points [P, 3], directions [P, 3]) -> (density [P], colour [P, 3]) in one call.

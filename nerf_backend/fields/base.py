@@ -60,6 +60,9 @@ class MarchableField(nn.Module):
     # Whether the field is built from the dataset's occupancy prior as well
     # (``Field(config, box, prior)``): the surface field starts its distance from it.
     STARTS_FROM_PRIOR: bool = False
+    # The march's step (world units), set by the model whenever its sampling follows the field:
+    # a density over a step (``density_along``) may need it.
+    march_step: float = 0.0
 
     def __init__(self, box: SceneBounds) -> None:
         super().__init__()
@@ -77,6 +80,12 @@ class MarchableField(nn.Module):
     def colour(self, x: Tensor, directions: Tensor) -> Tensor:
         raise NotImplementedError
 
+    def density_along(self, x: Tensor, directions: Tensor) -> Tensor:
+        """The density marchers use for a sample at ``x`` of a ray along ``directions``: the
+        field's ``density(x)``, unless its opacity depends on the way a ray crosses it (the
+        surface field's NeuS opacity)."""
+        return self.density(x)
+
     def ray_colour(self, directions: Tensor) -> RayColourFn:
         """``colour`` for samples packed from rays of these ``directions [R, 3]`` (inference's
         marchers): a function of the samples' points ``[P, 3]`` and rays ``[P]`` (indices into
@@ -87,7 +96,7 @@ class MarchableField(nn.Module):
     def forward(self, x: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
         """Density and colour of the same points in one call (a field that shares work
         between them overrides this)."""
-        return self.density(x), self.colour(x, directions)
+        return self.density_along(x, directions), self.colour(x, directions)
 
     def occupancy_cells(self) -> tuple[int, int, int]:
         """Cells per axis of the occupancy grid over the box (the march's step follows them)."""
@@ -115,9 +124,10 @@ class MarchableField(nn.Module):
         """A precomputed form of the density for fast reads without gradients, or None."""
         return None
 
-    def density_from_volume(self, volume: Tensor | None, x: Tensor) -> Tensor:
-        """``density(x)`` read from ``density_volume()``'s result."""
-        return self.density(x)
+    def density_from_volume(self, volume: Tensor | None, x: Tensor, directions: Tensor | None = None) -> Tensor:
+        """``density_along(x, directions)`` (``density(x)`` without directions) read from
+        ``density_volume()``'s result."""
+        return self.density(x) if directions is None else self.density_along(x, directions)
 
     def volume_activation(self) -> tuple[str, float, float] | None:
         """How ``density_from_volume`` turns the volume's trilinear value into density, as

@@ -112,8 +112,8 @@ class GridField(GridAppearance, MarchableField):
         lookup instead of six many-channel ones (what inference uses)."""
         return self.density_grid.dense_sum()[None, None]
 
-    def density_from_volume(self, volume: Tensor, x: Tensor) -> Tensor:
-        """``density(x)`` read from ``density_volume()``'s result."""
+    def density_from_volume(self, volume: Tensor, x: Tensor, directions: Tensor | None = None) -> Tensor:
+        """``density(x)`` read from ``density_volume()``'s result (the direction plays no part)."""
         grid = self.normalise(x).view(1, -1, 1, 1, 3)  # grid_sample's (x, y, z) = (W, H, D)
         summed = F.grid_sample(volume, grid, mode="bilinear", align_corners=True).view(-1)
         return self.density_from_features(summed)

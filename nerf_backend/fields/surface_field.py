@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from scipy import ndimage
 from torch import Tensor, nn
 
+from ..core.errors import NerfError
 from ..core.field_functions import RayColourFn
 from ..core.scene_bounds import SceneBounds, vertices_for
 from ..data.occupancy_prior import OccupancyPrior
@@ -40,6 +41,8 @@ from ..field_components.dense_grid import DenseGrid, Vertices
 from ..field_components.grid_growth import grown_resolution
 from .base import MarchableField, SampleCost, cell_corner_max
 from .grid_appearance import GridAppearance
+
+OPACITIES = ("volsdf", "neus")
 
 
 @dataclass(frozen=True)
@@ -58,6 +61,13 @@ class SurfaceFieldConfig:
     initial_beta_cells: float = 1.0
     final_beta_cells: float = 0.5
     beta_iterations: int = 2000
+    # How a ray's opacity follows the distance: "volsdf", the density Ψ_β(−s)/β of each point;
+    # "neus", NeuS's opacity of each step, from the distance where the ray enters and leaves it
+    # (1 − Φ(s_out)/Φ(s_in), Φ the logistic of s/β, none where the distance grows). VolSDF's
+    # density outside the surface piles up along rays that graze it, so its silhouettes lie
+    # outside the zero level and training pulls the surface inward (A.blend at 800×800: a cell
+    # inside the truth); NeuS's transmittance halves exactly at the zero level.
+    opacity: str = "volsdf"
     # The eikonal term's weight in the loss and the grid vertices it is taken at a step.
     eikonal_weight: float = 0.1
     eikonal_vertices: int = 16384
@@ -85,6 +95,8 @@ class SurfaceField(GridAppearance, MarchableField):
 
     def __init__(self, config: SurfaceFieldConfig, box: SceneBounds, prior: OccupancyPrior | None = None) -> None:
         super().__init__(box)
+        if config.opacity not in OPACITIES:
+            raise NerfError(f"surface.opacity {config.opacity!r}: choose {' or '.join(OPACITIES)}")
         self.config = config
         vertices = vertices_for(config.initial_resolution, self.extent)
         final_cell = min(self._cell_sides(vertices_for(config.resolution, self.extent)))
@@ -155,6 +167,30 @@ class SurfaceField(GridAppearance, MarchableField):
     def density(self, x: Tensor) -> Tensor:
         return self.density_from_distance(self.signed_distance(x))
 
+    def density_along(self, x: Tensor, directions: Tensor) -> Tensor:
+        if self.config.opacity != "neus":
+            return self.density(x)
+        return self._step_density(lambda points: self.signed_distance(points), x, directions)
+
+    def _step_density(self, distance_at: Callable[[Tensor], Tensor], x: Tensor, directions: Tensor) -> Tensor:
+        """NeuS's opacity of the march step centred on ``x``, as the density that gives it over
+        the step: ``−ln(Φ(s_out)/Φ(s_in)) / step``, 0 where the distance grows along the ray."""
+        step = self.march_step
+        half = directions * (0.5 * step)
+        distance = distance_at(torch.cat([x - half, x + half])).float().view(2, -1)
+        beta = self.beta
+        # ln Φ(s) = −softplus(−s/β): the difference of two such, stable at any distance.
+        optical = F.softplus(-distance[1] / beta) - F.softplus(-distance[0] / beta)
+        return optical.clamp_min(0.0) / step
+
+    def density_bound_from_distance(self, distance: Tensor) -> Tensor:
+        """The largest density a point at ``distance`` can have, for the occupancy grid: VolSDF's
+        density, or for NeuS's opacity (|∇s| ≈ 1, a step's entry and exit a step apart) the
+        logistic's slope bound σ(−s/β)/β."""
+        if self.config.opacity != "neus":
+            return self.density_from_distance(distance)
+        return torch.sigmoid(-distance.float() / self.beta) / self.beta
+
     def normals(self, x: Tensor) -> Tensor:
         """The distance's unit gradient at ``x``: central differences half a cell apart (a grid
         read has no second derivative; these carry the images' gradient to the distances)."""
@@ -216,25 +252,31 @@ class SurfaceField(GridAppearance, MarchableField):
     def cell_max_density(self) -> Tensor:
         """Each cell's largest density, exactly: the distance is trilinear within a cell, so
         its least value is at a corner, and density falls as distance grows."""
-        return cell_corner_max(self.density_from_distance(self.sdf_grid.vertex_values()))
+        return cell_corner_max(self.density_bound_from_distance(self.sdf_grid.vertex_values()))
 
     @torch.no_grad()
     def occupancy_estimate(self) -> tuple[Tensor, float]:
-        return self.cell_max_density(), float(self.density_from_distance(self.sdf_grid.vertex_values()).mean())
+        return self.cell_max_density(), float(self.density_bound_from_distance(self.sdf_grid.vertex_values()).mean())
 
     def sample_cost(self) -> dict[str, SampleCost]:
-        density = SampleCost(8, 16 + 8)  # one trilinear read, then the Laplace CDF
+        reads = 2 if self.config.opacity == "neus" else 1  # NeuS reads the distance where a step begins and ends
+        density = SampleCost(8 * reads, 16 * reads + 8)  # trilinear reads, then the activation
         return {"density": density, "colour": self.appearance_cost(), "frozen density": density,
                 "field": density + self.appearance_cost()}
 
     def density_volume(self) -> Tensor:
         return self.sdf_grid.values.detach() * self.sdf_grid.unit
 
-    def density_from_volume(self, volume: Tensor, x: Tensor) -> Tensor:
-        return self.density_from_distance(DenseGrid.read(volume, self.normalise(x)))
+    def density_from_volume(self, volume: Tensor, x: Tensor, directions: Tensor | None = None) -> Tensor:
+        def distance_at(points: Tensor) -> Tensor:
+            return DenseGrid.read(volume, self.normalise(points))
+
+        if self.config.opacity == "neus" and directions is not None:
+            return self._step_density(distance_at, x, directions)
+        return self.density_from_distance(distance_at(x))
 
     def volume_activation(self) -> tuple[str, float, float]:
-        return "laplace", float(self.beta), 0.0
+        return ("neus" if self.config.opacity == "neus" else "laplace"), float(self.beta), 0.0
 
     def encoding_parameters(self) -> list[nn.Parameter]:
         return [*self.sdf_grid.parameters(), *self.appearance_grid.parameters()]

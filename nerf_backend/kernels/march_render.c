@@ -22,7 +22,7 @@
 #include <stdint.h>
 #include <string.h>
 
-enum { ACTIVATION_SOFTPLUS = 0, ACTIVATION_LAPLACE = 1 };
+enum { ACTIVATION_SOFTPLUS = 0, ACTIVATION_LAPLACE = 1, ACTIVATION_NEUS = 2 };
 
 typedef struct {
     float step;
@@ -33,7 +33,7 @@ typedef struct {
     float box_min[3];
     float box_max[3];
     int32_t activation;     /* ACTIVATION_* */
-    float a, b;             /* softplus: sigma = a * softplus(v + b); laplace: beta = a */
+    float a, b;             /* softplus: sigma = a * softplus(v + b); laplace, neus: beta = a */
     float opaque_transmittance;
     float skipped_weight;   /* weight a ray may leave uncoloured */
 } MarchSettings;
@@ -57,7 +57,7 @@ static float activate(const MarchSettings *s, float v) {
     return (v > 0.0f ? tail : 1.0f - tail) / s->a;
 }
 
-static float density_at(const MarchSettings *s, const float *volume, const float p[3]) {
+static float trilinear(const MarchSettings *s, const float *volume, const float p[3]) {
     float frac[3];
     int64_t lower[3];
     for (int axis = 0; axis < 3; ++axis) {
@@ -78,7 +78,23 @@ static float density_at(const MarchSettings *s, const float *volume, const float
     float c01 = c[dz] + fx * (c[dz + 1] - c[dz]);
     float c11 = c[dz + dy] + fx * (c[dz + dy + 1] - c[dz + dy]);
     float c0 = c00 + fy * (c10 - c00), c1 = c01 + fy * (c11 - c01);
-    return activate(s, c0 + fz * (c1 - c0));
+    return c0 + fz * (c1 - c0);
+}
+
+static inline float softplusf(float x) { return x > 20.0f ? x : log1pf(expf(x)); }
+
+/* The density of the sample at p on a ray along d: the activated volume there, or for NeuS's
+ * opacity the step's -ln(Phi(s_out) / Phi(s_in)) / step, s read half a step before and after p
+ * (surface_field.py's _step_density). */
+static float density_at(const MarchSettings *s, const float *volume, const float p[3], const float d[3]) {
+    if (s->activation != ACTIVATION_NEUS) return activate(s, trilinear(s, volume, p));
+    float in[3], out[3];
+    for (int axis = 0; axis < 3; ++axis) {
+        in[axis] = p[axis] - 0.5f * s->step * d[axis];
+        out[axis] = p[axis] + 0.5f * s->step * d[axis];
+    }
+    const float optical = softplusf(-trilinear(s, volume, out) / s->a) - softplusf(-trilinear(s, volume, in) / s->a);
+    return optical > 0.0f ? optical / s->step : 0.0f;
 }
 
 typedef struct {
@@ -147,7 +163,7 @@ static int march_ray(MarchJob *job, MarchThread *thread, int64_t r) {
             if (!inside || !job->occupied[cell_index(units, s->cells)]) continue;
             float p[3];
             for (int axis = 0; axis < 3; ++axis) p[axis] = o[axis] + d[axis] * t_mid;
-            const float sigma = density_at(s, job->volume, p);
+            const float sigma = density_at(s, job->volume, p, d);
             ++read;
             if (!(sigma > 0.0f)) continue;
             const float optical = sigma * delta;

@@ -43,7 +43,7 @@ from .marcher import OPAQUE_TRANSMITTANCE, SKIPPED_WEIGHT
 from .occupancy import OccupancyGrid
 from .render_output import RenderOutput
 
-ACTIVATIONS = {"softplus": 0, "laplace": 1}  # march_render.c's ACTIVATION_*
+ACTIVATIONS = {"softplus": 0, "laplace": 1, "neus": 2}  # march_render.c's ACTIVATION_*
 # Packed samples one call of the kernel may write (24 bytes each): bounds the memory of a chunk
 # of rays whatever the field (a haze colours every step of every ray).
 SAMPLES_PER_CALL = 1 << 20
@@ -62,7 +62,9 @@ class VolumeDensity:
     occupancy grid's box, ``volume [Nz, Ny, Nx]`` at the box's vertices (x fastest).
 
     ``softplus``: σ = scale · softplus(v + shift) (TensoRF's parametrisation);
-    ``laplace``: σ = VolSDF's Laplace CDF of the signed distance v with β = scale."""
+    ``laplace``: σ = VolSDF's Laplace CDF of the signed distance v with β = scale;
+    ``neus``: NeuS's opacity of the march step (β = scale), from v half a step before and after
+    the sample along its ray (``SurfaceField.density_along``)."""
 
     volume: Tensor
     activation: str

@@ -1,7 +1,7 @@
 """Marching rays in fixed steps through an occupancy grid, for any field (nerfacc's idea).
 
-The caller passes functions, the marcher samples and renders: ``density_fn(points [P, 3]) ->
-[P]`` (without gradients: which samples light reaches), ``field_fn(points, directions) ->
+The caller passes functions, the marcher samples and renders: ``density_fn(points [P, 3],
+directions [P, 3]) -> [P]`` (without gradients: which samples light reaches), ``field_fn(points, directions) ->
 (density [P], colour [P, 3])`` (the samples that count, with gradients; one call, so a field
 can share work between the two) or, for inference, ``ray_colour(points, ray) -> [P, 3]`` of
 samples packed per ray (``core/field_functions.py``), plus an ``OccupancyGrid`` that says where
@@ -18,7 +18,7 @@ Example:
     >>> out = render_marched(
     ...     torch.tensor([[0.0, -3.0, 0.0]]), torch.tensor([[0.0, 1.0, 0.0]]),
     ...     torch.tensor([2.0]), torch.tensor([4.0]),
-    ...     density_fn=lambda x: torch.full(x.shape[:1], 50.0),
+    ...     density_fn=lambda x, d: torch.full(x.shape[:1], 50.0),
     ...     field_fn=lambda x, d: (torch.full(x.shape[:1], 50.0), torch.zeros_like(x)),
     ...     occupancy=grid, step=0.05, steps=41, background=1.0)
     >>> round(float(out.opacity), 3), round(float(out.rgb.sum()), 3)  # a black, opaque cube
@@ -30,7 +30,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..core.field_functions import DensityFn, FieldFn, RayColourFn
+from ..core.field_functions import FieldFn, RayColourFn, SampleDensityFn
 from ..core.stage_timer import stage
 from .occupancy import OccupancyGrid
 from .render_output import RenderOutput
@@ -76,25 +76,27 @@ def occupied_samples(occupancy: OccupancyGrid, positions: Tensor, deltas: Tensor
     return index[occupancy.query(positions.view(-1, 3).index_select(0, index))]
 
 
-def density_at(density_fn: DensityFn, positions: Tensor, index: Tensor, shape: torch.Size) -> Tensor:
-    """Density ``shape = [R, S]`` at the samples ``index`` (0 elsewhere)."""
-    values = density_fn(positions.view(-1, 3).index_select(0, index))
+def density_at(density_fn: SampleDensityFn, positions: Tensor, directions: Tensor, index: Tensor,
+               shape: torch.Size) -> Tensor:
+    """Density ``shape = [R, S]`` at the samples ``index`` (0 elsewhere) of rays along ``directions [R, 3]``."""
+    values = density_fn(positions.view(-1, 3).index_select(0, index), directions.index_select(0, index // shape[1]))
     return values.new_zeros(shape.numel()).index_put((index,), values).view(shape)
 
 
 @torch.no_grad()
-def lit_samples(density_fn: DensityFn, positions: Tensor, deltas: Tensor, index: Tensor) -> Tensor:
+def lit_samples(density_fn: SampleDensityFn, positions: Tensor, directions: Tensor, deltas: Tensor,
+                index: Tensor) -> Tensor:
     """Of the samples ``index``, those that light still reaches (transmittance above
     ``OPAQUE_TRANSMITTANCE``), found in a pass without gradients: what lies behind an opaque
     surface adds under 1e-4 to the pixel, so training spends no backward pass on it
     (nerfacc's early stop), however solid the object."""
-    density = density_at(density_fn, positions, index, deltas.shape)
+    density = density_at(density_fn, positions, directions, index, deltas.shape)
     _, transmittance = render_weights(density, deltas)
     return index[transmittance.view(-1).index_select(0, index) > OPAQUE_TRANSMITTANCE]
 
 
 def render_marched(
-    origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, *, density_fn: DensityFn,
+    origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, *, density_fn: SampleDensityFn,
     field_fn: FieldFn, occupancy: OccupancyGrid, step: float, steps: int, background: Tensor | float,
     offset: Tensor | None = None,
 ) -> RenderOutput:
@@ -121,7 +123,7 @@ def render_marched(
         positions = origins[:, None, :] + directions[:, None, :] * t_mid[..., None]
         occupied = occupied_samples(occupancy, positions, deltas)
     with stage("density pass", items=occupied.numel()):
-        lit = lit_samples(density_fn, positions, deltas, occupied)
+        lit = lit_samples(density_fn, positions, directions, deltas, occupied)
     with stage("field", items=lit.numel()):
         density_values, colour_values = field_fn(positions.view(-1, 3).index_select(0, lit),
                                                  directions.index_select(0, lit // deltas.shape[1]))
@@ -169,7 +171,7 @@ def occupied_spans(occupancy: OccupancyGrid, origins: Tensor, directions: Tensor
 
 @torch.no_grad()
 def render_marched_stopping_early(
-    origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, *, density_fn: DensityFn,
+    origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, *, density_fn: SampleDensityFn,
     ray_colour: RayColourFn, occupancy: OccupancyGrid, step: float, steps: int, background: Tensor | float,
 ) -> RenderOutput:
     """``render_marched``'s image without gradients, over the same fixed steps, marched only
@@ -214,7 +216,8 @@ def render_marched_stopping_early(
                                       ray_directions.index_select(0, sample_ray),
                                       t_mid.view(-1).index_select(0, index)[:, None])
         with stage("density", items=index.numel()):
-            density = deltas.new_zeros(deltas.numel()).index_put_((index,), density_fn(positions)).view(deltas.shape)
+            sample_density = density_fn(positions, ray_directions.index_select(0, sample_ray))
+            density = deltas.new_zeros(deltas.numel()).index_put_((index,), sample_density).view(deltas.shape)
         round_weights, round_transmittance = render_weights(density, deltas)
         entering = transmittance.index_select(0, active)
         weights = round_weights * entering[:, None]
