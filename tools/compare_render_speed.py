@@ -68,8 +68,9 @@ def baseline_march(revision: str, model):
     occupancy grid held in that revision's ``OccupancyGrid`` where that class has changed since."""
     occupancy = _load_baseline(revision, "model_components/occupancy.py",
                                "nerf_backend.model_components._baseline_occupancy")
-    march = _load_baseline(revision, "model_components/marcher.py",
-                           "nerf_backend.model_components._baseline_marcher").render_marched_stopping_early
+    march = with_colour_fn(_load_baseline(revision, "model_components/marcher.py",
+                                          "nerf_backend.model_components._baseline_marcher").render_marched_stopping_early,
+                           model)
     current = (ROOT / "nerf_backend/model_components/occupancy.py").read_text()
     if Path(occupancy.__file__).read_text() == current:
         return march
@@ -84,12 +85,15 @@ def baseline_march(revision: str, model):
 
 
 def with_colour_fn(march, model):
-    """``march`` as the model calls it today (``ray_colour=``), where the baseline's march took
-    ``colour_fn(points, directions)`` instead: it gets the field's ``colour``."""
+    """``march`` as the model calls it today (``ray_colour=``, ``density_fn(points, directions)``),
+    where the baseline's march took ``colour_fn(points, directions)`` and ``density_fn(points)``
+    instead: it gets the field's ``colour`` and a density that needs no direction."""
     if "colour_fn" not in inspect.signature(march).parameters:
         return march
 
-    def render(*args, ray_colour, **kwargs):
+    def render(*args, ray_colour, density_fn=None, **kwargs):
+        if density_fn is not None:  # the compiled march reads its density volume instead
+            kwargs["density_fn"] = lambda x, directions=None: density_fn(x, directions)
         return march(*args, colour_fn=model.field.colour, **kwargs)
 
     return render
@@ -107,7 +111,7 @@ def main() -> int:
     model, ray_bounds, _ = load_trained_model(RunFolder(args.run), torch.device("cpu"))
     split = load_split(args.dataset, "test")
     views = [int(v) for v in args.views.split(",")]
-    sides = {"baseline": with_colour_fn(baseline_march(args.baseline, model), model),
+    sides = {"baseline": baseline_march(args.baseline, model),
              "current": marched.render_marched_stopping_early}
     compiled = {"baseline": marched.render_marched_compiled, "current": marched.render_marched_compiled}
     if args.baseline_compiled:
