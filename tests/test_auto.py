@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from nerf_backend.training.auto import auto_config
@@ -57,3 +59,25 @@ def test_settings_given_with_set_are_the_users():
     assert decisions["grid_resolution"]["value"] == 40
     # What was not set is still decided.
     assert config.random_background is True and "random background" in decisions["background"]["reason"]
+
+
+def test_the_surface_presets_final_softness_follows_the_pixel():
+    """Where a pixel is finer than the grid's cells (800×800) the surface preset's final β is
+    sharper, a quarter cell; where it is coarser (100×100) it stays at half a cell; a value the
+    user set is kept, with what the rule would have chosen."""
+    from nerf_backend.core.cameras import Intrinsics
+    from nerf_backend.training.surface_softness import surface_softness
+
+    surface = PRESETS["surface"]
+    coarse = _split()
+    config, decision = surface_softness(surface, coarse, BOX)
+    assert config.surface.final_beta_cells == 0.5 and "a pixel covers" in decision["surface_softness"]["reason"]
+    fine = DatasetSplit("train", Intrinsics(800, 800, 8 * 138.9, 8 * 138.9, 400.0, 400.0), coarse.poses,
+                        torch.zeros((4, 800, 800, 4), dtype=torch.uint8), [])
+    config, decision = surface_softness(surface, fine, BOX)
+    assert config.surface.final_beta_cells == 0.25 == decision["surface_softness"]["value"]
+    assert config.surface.resolution == surface.surface.resolution  # nothing else changes
+    user = surface.with_settings(surface=dataclasses.replace(surface.surface, final_beta_cells=0.4))
+    config, decision = surface_softness(user, fine, BOX, frozenset({"surface.final_beta_cells"}))
+    assert config.surface.final_beta_cells == 0.4
+    assert decision["surface_softness"]["reason"].startswith("set with --set surface.final_beta_cells; the rule would choose 0.25")

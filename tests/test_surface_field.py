@@ -106,6 +106,8 @@ def test_surface_preset_trains_and_meshes_its_zero_level_set(trained_surface_run
     config = json.loads((run / "config.json").read_text())
     assert config["config"]["model"] == "surface"
     assert config["config"]["occupancy_prior"] == "available"
+    softness = config["decisions"]["surface_softness"]  # 40×40 pixels, each several cells: half a cell
+    assert softness["value"] == config["config"]["surface"]["final_beta_cells"] == 0.5
     run_python("-m", "nerf_backend", "eval", str(run), "--geometry", "--mesh-resolution", "96", "--no-progress")
     metrics = json.loads((run / "metrics.json").read_text())
     geometry = json.loads((run / "geometry.json").read_text())

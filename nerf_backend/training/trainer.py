@@ -37,6 +37,7 @@ from ..models.base import Model
 from ..models.registry import build_model, model_class
 from .auto import AVAILABLE_PRIOR, PRIOR_KIND, auto_config, pixel_footprint
 from .collapse_guard import CollapseGuard, Verdict, blank_psnr, recovery_config
+from .surface_softness import surface_softness
 
 
 @dataclass
@@ -269,10 +270,14 @@ def _plan_run(run: RunFolder, dataset: Path, train_split: DatasetSplit, options:
     decisions = {"ray_bounds": {**ray_bounds.describe(), "reason": bounds_reason}}
     if options.resume:
         decisions = stored.get("decisions", decisions)
-    elif config.preset == "auto":
+    else:
         user_set = frozenset(assignment.partition("=")[0] for assignment in options.overrides)
-        config, auto_decisions = auto_config(config, train_split, ray_bounds.box, load_scene_profile(dataset), user_set)
-        decisions.update(auto_decisions)
+        if config.preset == "auto":
+            config, shaped = auto_config(config, train_split, ray_bounds.box, load_scene_profile(dataset), user_set)
+            decisions.update(shaped)
+        elif config.model == "surface":
+            config, shaped = surface_softness(config, train_split, ray_bounds.box, user_set)
+            decisions.update(shaped)
     return _RunPlan(dataset, config, seed, max_seconds, schedule_seconds, stop_at_iterations, device, train_split,
                     ray_bounds, _occupancy_prior(dataset, config), decisions)
 
