@@ -24,36 +24,26 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 from scipy import ndimage
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from nerf_backend.core.cameras import project_points  # noqa: E402
 from nerf_backend.core.ply import read_ply  # noqa: E402
 from nerf_backend.data.dataset import load_split  # noqa: E402
+from nerf_backend.metrics.geometry import sample_surface  # noqa: E402
 
 POINTS = 3_000_000
 
 
-def surface_points(vertices: np.ndarray, faces: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
-    """``count`` points uniform by area over the triangles."""
-    corners = vertices[faces]
-    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
-    picked = corners[rng.choice(len(faces), count, p=area / area.sum())]
-    u, v = rng.random(count), rng.random(count)
-    flip = u + v > 1
-    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
-    return picked[:, 0] + u[:, None] * (picked[:, 1] - picked[:, 0]) + v[:, None] * (picked[:, 2] - picked[:, 0])
-
-
-def pixels(points: np.ndarray, camera_to_world: np.ndarray, intrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """The pixel (column, row) each point falls in, and which fall inside the image."""
-    world_to_camera = np.linalg.inv(camera_to_world)
-    camera = points @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
-    column = np.floor(camera[:, 0] / -camera[:, 2] * intrinsics.fl_x + intrinsics.cx).astype(np.int64)
-    row = np.floor(-camera[:, 1] / -camera[:, 2] * intrinsics.fl_y + intrinsics.cy).astype(np.int64)
-    inside = (column >= 0) & (column < intrinsics.width) & (row >= 0) & (row < intrinsics.height) & (camera[:, 2] < 0)
-    return np.stack([column, row], axis=1), inside
+def pixels(points: np.ndarray, camera_to_world: torch.Tensor, intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """The pixel (column, row) each point falls in, and which fall inside the image (every
+    camera of a protocol dataset sees the whole object from outside it)."""
+    where = project_points(intrinsics, camera_to_world.double(), torch.from_numpy(points)).floor().long().numpy()
+    inside = (where[:, 0] >= 0) & (where[:, 0] < intrinsics.width) & (where[:, 1] >= 0) & (where[:, 1] < intrinsics.height)
+    return where, inside
 
 
 def main() -> int:
@@ -73,10 +63,10 @@ def main() -> int:
         vertices = np.asarray(vertices, np.float64)
         if name != "truth" and frame:  # the mesh command writes Blender's world frame
             vertices = vertices * frame["scale"] + np.asarray(frame["translation"])
-        points = surface_points(vertices, np.asarray(faces), POINTS, np.random.default_rng(0))
+        points, _ = sample_surface(vertices, np.asarray(faces), POINTS, np.random.default_rng(0))
         off, uncovered_1, uncovered_2, opaque_pixels = [], 0, 0, 0
         for view in views:
-            where, inside = pixels(points, split.poses[view].double().numpy(), intrinsics)
+            where, inside = pixels(points, split.poses[view], intrinsics)
             column, row = where[:, 0], where[:, 1]
             column, row = column[inside], row[inside]
             off.append(to_opaque[view][row, column])
