@@ -50,6 +50,9 @@ class OccupancyPrior:
     # Cells every marked surface cell was grown by (the profile's margin): the surface itself
     # lies between this many and one more cells inside the marked region's boundary.
     margin_cells: int = 0
+    # Beside a solid prior, its surface cells (the file holds both): with them the surface
+    # field knows on which side of the surface each unmarked cell lies (surface_band.py).
+    surface_cells: Tensor | None = None
 
     @property
     def box_max(self) -> tuple[float, float, float]:
@@ -105,12 +108,16 @@ def load_occupancy_prior(dataset_dir: Path | str, kind: str) -> OccupancyPrior |
     try:
         with np.load(path, allow_pickle=False) as data:
             occupied = np.asarray(data[kind])
+            surface_cells = np.asarray(data["surface"]) if kind == "solid" and "surface" in data.files else None
             box_min = np.asarray(data["box_min"], dtype=np.float64)
             cell_size = float(np.asarray(data["cell_size"]))
     except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as exc:
         raise DatasetError(f"{path}: not a readable occupancy prior ({exc})") from None
     if occupied.dtype != np.bool_ or occupied.ndim != 3 or min(occupied.shape) < 1:
         raise DatasetError(f"{path}: '{kind}' must be a 3-D bool array, got {occupied.dtype} {occupied.shape}")
+    if surface_cells is not None and (surface_cells.dtype != np.bool_ or surface_cells.shape != occupied.shape):
+        raise DatasetError(f"{path}: 'surface' must be a bool array of the shape of 'solid' {occupied.shape}, "
+                           f"got {surface_cells.dtype} {surface_cells.shape}")
     if box_min.shape != (3,) or not np.isfinite(box_min).all() or not (math.isfinite(cell_size) and cell_size > 0):
         raise DatasetError(f"{path}: 'box_min' must be 3 finite numbers and 'cell_size' a positive number")
     margin = record.get("margin")
@@ -119,4 +126,4 @@ def load_occupancy_prior(dataset_dir: Path | str, kind: str) -> OccupancyPrior |
         raise DatasetError(f"{profile_path}: 'occupancy_prior' 'margin' 'cells' must be a whole number of cells, "
                            f"got {margin_cells!r}")
     return OccupancyPrior(torch.from_numpy(occupied.copy()), tuple(box_min.tolist()), cell_size, kind,  # type: ignore[arg-type]
-                          margin_cells)
+                          margin_cells, None if surface_cells is None else torch.from_numpy(surface_cells.copy()))

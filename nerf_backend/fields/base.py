@@ -162,6 +162,10 @@ class MarchableField(nn.Module):
         the occupancy grid must follow."""
         return False
 
+    def after_step(self) -> None:
+        """After each optimiser step (``Model.after_step``): constraints the field keeps by
+        projection (the surface field's bounds from Blender's prior)."""
+
     def take_note(self) -> str | None:
         """What the field's schedule decided that the user should hear (once), or None."""
         return None

@@ -12,7 +12,9 @@ cell. An eikonal term keeps ``|∇s| = 1`` (finite differences between grid vert
 read has no second derivative to back-propagate). Colour is the grid field's
 (``GridAppearance``). The grid starts as the signed distance to Blender's solid occupancy
 prior where the dataset has one (the surface within about a prior cell from the start), else
-as a sphere.
+as a sphere. With that prior the distance is kept, after every step, within the bounds it gives
+(``surface_band.py``: the surface lies in the prior's surface cells less their margin), so the
+images choose the surface within about a prior cell of Blender's own.
 
 Example:
     >>> from ..core.scene_bounds import SceneBounds
@@ -39,6 +41,7 @@ from ..core.scene_bounds import SceneBounds, vertices_for
 from ..data.occupancy_prior import OccupancyPrior
 from ..field_components.dense_grid import DenseGrid, Vertices
 from ..field_components.grid_growth import grown_resolution
+from ..field_components.surface_band import SignedDistanceBounds
 from .base import MarchableField, SampleCost, cell_corner_max
 from .grid_appearance import GridAppearance
 
@@ -68,6 +71,10 @@ class SurfaceFieldConfig:
     # outside the zero level and training pulls the surface inward (A.blend at 800×800: a cell
     # inside the truth); NeuS's transmittance halves exactly at the zero level.
     opacity: str = "volsdf"
+    # Keep the distance within the bounds Blender's occupancy prior gives (surface_band.py:
+    # the surface lies in the prior's surface cells less their margin), by projection after
+    # every step, where the dataset has a solid prior with its surface cells.
+    prior_band: bool = True
     # The eikonal term's weight in the loss and the grid vertices it is taken at a step.
     eikonal_weight: float = 0.1
     eikonal_vertices: int = 16384
@@ -107,6 +114,17 @@ class SurfaceField(GridAppearance, MarchableField):
         self.final_beta = config.final_beta_cells * final_cell
         # A buffer: a checkpoint renders with the softness it was trained to.
         self.register_buffer("beta", torch.tensor(self.initial_beta))
+        # The band's bounds are built at the first step (training only: 1-2 s of distance
+        # transforms at a 256-cell prior) and fitted to the vertices at each size.
+        self._band_prior = prior if config.prior_band and self._has_band(prior) else None
+        self.band: SignedDistanceBounds | None = None
+        self.register_buffer("vertex_lower", None, persistent=False)
+        self.register_buffer("vertex_upper", None, persistent=False)
+        self._note: str | None = None
+        if self._band_prior is not None:
+            self._note = (f"the surface is kept within the band Blender's geometry marks (occupancy prior cells of "
+                          f"{self._band_prior.cell_size:.4g}, less their margin of {self._band_prior.margin_cells}; "
+                          f"surface.prior_band)")
 
     # --- the signed distance and its density -------------------------------------------------
 
@@ -148,6 +166,45 @@ class SurfaceField(GridAppearance, MarchableField):
         distance = F.grid_sample(volume, grid.view(1, -1, 1, 1, 3), mode="bilinear", padding_mode="border",
                                  align_corners=True)
         return distance.view(grid.shape[:3])
+
+    @staticmethod
+    def _has_band(prior: OccupancyPrior | None) -> bool:
+        """Whether ``prior`` bounds the distance: a solid prior that holds its surface cells."""
+        return (prior is not None and prior.kind == "solid" and prior.surface_cells is not None
+                and bool(prior.surface_cells.any()))
+
+    @torch.no_grad()
+    def _fit_band(self) -> None:
+        """The band's bounds at the grid's vertices, in the grid's units and layout."""
+        prior = self._band_prior
+        assert prior is not None and prior.surface_cells is not None
+        device = self.sdf_grid.values.device
+        if self.band is None:
+            self.band = SignedDistanceBounds(prior.surface_cells.numpy(), prior.occupied.numpy(), prior.box_min,
+                                             prior.cell_size, prior.margin_cells).to(device)
+        band = self.band
+        axes = [axis.to(device=device, dtype=torch.float32) for axis in self._vertex_positions(self.vertices)]
+        points = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
+        lower, upper = band(points.view(-1, 3))
+        unit = self.sdf_grid.unit
+        for name, bound in (("vertex_lower", lower), ("vertex_upper", upper)):
+            layout = (bound.view(points.shape[:3]) / unit).permute(2, 1, 0).contiguous()[None, None]
+            self.register_buffer(name, layout, persistent=False)  # [1, 1, Nz, Ny, Nx], as the grid
+
+    @torch.no_grad()
+    def after_step(self) -> None:
+        """Project the distances onto the band's bounds (a clamp of the grid: about 1 ms
+        for 192³ vertices on 2 CPU cores)."""
+        if self._band_prior is None:
+            return
+        values = self.sdf_grid.values
+        if self.vertex_lower is None or self.vertex_lower.shape != values.shape:
+            self._fit_band()
+        torch.maximum(torch.minimum(values, self.vertex_upper), self.vertex_lower, out=values.data)
+
+    def take_note(self) -> str | None:
+        note, self._note = self._note, None
+        return note
 
     def beta_after(self, scheduled: int) -> float:
         """β once ``scheduled`` steps of the schedule have been taken."""

@@ -101,6 +101,10 @@ class Model(nn.Module):
         the parameters were replaced (the optimiser must be rebuilt)."""
         return False
 
+    def after_step(self) -> None:
+        """Called after each optimiser step: projections of the model's parameters back onto
+        the constraints it keeps (the surface field's bounds from Blender's prior)."""
+
     def take_note(self) -> str | None:
         """What the model's schedule decided that the user should hear (once), or None."""
         return None

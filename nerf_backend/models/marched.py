@@ -169,6 +169,9 @@ class MarchedModel(Model):
     def coarse_detail(self) -> float | None:
         return self.field.coarse_detail()
 
+    def after_step(self) -> None:
+        self.field.after_step()
+
     def take_note(self) -> str | None:
         return self.field.take_note()
 

@@ -437,6 +437,7 @@ class _Training:
         with stage("optimiser", items=parameters):
             self.scaler.step(self.optimizer)
             self.scaler.update()
+            model.after_step()
         self.iteration += 1
         self.train_seconds += time.perf_counter() - step_start
         self.progress.step(self.iteration, self.train_seconds)
