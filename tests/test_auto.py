@@ -81,3 +81,31 @@ def test_the_surface_presets_final_softness_follows_the_pixel():
     config, decision = surface_softness(user, fine, BOX, frozenset({"surface.final_beta_cells"}))
     assert config.surface.final_beta_cells == 0.4
     assert decision["surface_softness"]["reason"].startswith("set with --set surface.final_beta_cells; the rule would choose 0.25")
+
+
+def test_the_surface_presets_opacity_is_neus_only_where_the_prior_bounds_the_surface():
+    """NeuS where Blender's prior bounds the surface to a band (a solid prior with its surface
+    cells), VolSDF where nothing does (no prior, a prior without surface cells, or the band
+    turned off); a value the user set is kept, with what the rule would have chosen."""
+    from nerf_backend.data.occupancy_prior import OccupancyPrior
+    from nerf_backend.training.surface_opacity import surface_opacity
+
+    surface = PRESETS["surface"]
+    solid = torch.zeros((8, 8, 8), dtype=torch.bool)
+    solid[2:6, 2:6, 2:6] = True
+    shell = solid.clone()
+    shell[3:5, 3:5, 3:5] = False
+    bounded = OccupancyPrior(solid, (-1.0, -1.0, -1.0), 0.25, "solid", 1, shell)
+    config, decision = surface_opacity(surface, bounded)
+    assert config.surface.opacity == "neus" == decision["surface_opacity"]["value"]
+    assert "bounds the surface to a band" in decision["surface_opacity"]["reason"]
+    assert config.surface.final_beta_cells == surface.surface.final_beta_cells  # nothing else changes
+    no_band = surface.with_settings(surface=dataclasses.replace(surface.surface, prior_band=False))
+    for config_in, prior in ((surface, None), (surface, OccupancyPrior(solid, (-1.0,) * 3, 0.25, "solid", 1)),
+                             (surface, OccupancyPrior(shell, (-1.0,) * 3, 0.25, "surface", 1, shell)), (no_band, bounded)):
+        config, decision = surface_opacity(config_in, prior)
+        assert config.surface.opacity == "volsdf" and "no prior bounds the surface" in decision["surface_opacity"]["reason"]
+    user = surface.with_settings(surface=dataclasses.replace(surface.surface, opacity="volsdf"))
+    config, decision = surface_opacity(user, bounded, frozenset({"surface.opacity"}))
+    assert config.surface.opacity == "volsdf"
+    assert decision["surface_opacity"]["reason"].startswith("set with --set surface.opacity; the rule would choose neus")

@@ -15,10 +15,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from test_datasets_gen import REPO, SCRIPTS, load_split, require_blender, run_module
 
 from datasets_gen.core import voxelise as vx
 from datasets_gen.core.voxelise import Grid, Part, box_triangles, dilate, mark_boxes, mark_triangles, outside, voxelise
+from nerf_backend.field_components.surface_band import SignedDistanceBounds
 
 TINY = ["--resolution", "24", "--train-views", "2", "--val-views", "1", "--test-views", "1", "--samples", "1",
         "--no-progress"]
@@ -329,6 +331,12 @@ def test_every_blender_ray_hit_lies_in_a_marked_cell(name: str, scenes: dict[str
     for kind in ("surface", "solid"):
         missed = points[~marked(arrays, kind, points)]
         assert len(missed) == 0, f"{len(missed)} of {len(points)} hits outside '{kind}': {missed[:5].tolist()}"
+    # Every hit lies in the band the surface field is kept within (the surface cells less
+    # the margin): neither side's bound excludes it.
+    band = SignedDistanceBounds(arrays["surface"], arrays["solid"], tuple(arrays["box_min"]), float(arrays["cell_size"]),
+                                record["margin"]["cells"])
+    lower, upper = band(torch.from_numpy(points))
+    assert float(lower.max()) <= 0.0 <= float(upper.min()), "a Blender ray hit outside the surface band"
     # Tight enough to skip most of the box (measured: MEASURED above).
     surface_fraction, solid_fraction = MEASURED[name]
     assert record["surface_fraction"] == pytest.approx(surface_fraction, abs=0.01)

@@ -108,6 +108,9 @@ def test_surface_preset_trains_and_meshes_its_zero_level_set(trained_surface_run
     assert config["config"]["occupancy_prior"] == "available"
     softness = config["decisions"]["surface_softness"]  # 40×40 pixels, each several cells: half a cell
     assert softness["value"] == config["config"]["surface"]["final_beta_cells"] == 0.5
+    # The demo's prior bounds the surface: NeuS's opacity, the distance kept within the band.
+    assert config["decisions"]["surface_opacity"]["value"] == config["config"]["surface"]["opacity"] == "neus"
+    assert config["config"]["surface"]["prior_band"] is True
     run_python("-m", "nerf_backend", "eval", str(run), "--geometry", "--mesh-resolution", "96", "--no-progress")
     metrics = json.loads((run / "metrics.json").read_text())
     geometry = json.loads((run / "geometry.json").read_text())

@@ -59,6 +59,12 @@ class OccupancyPrior:
         return tuple(lo + n * self.cell_size for lo, n in zip(self.box_min, self.occupied.shape))  # type: ignore[return-value]
 
     @property
+    def bounds_the_surface(self) -> bool:
+        """Whether it says on which side of the surface each cell lies: a solid prior that
+        holds its surface cells, and some of them (``field_components/surface_band.py``)."""
+        return self.kind == "solid" and self.surface_cells is not None and bool(self.surface_cells.any())
+
+    @property
     def occupied_fraction(self) -> float:
         return float(self.occupied.float().mean())
 

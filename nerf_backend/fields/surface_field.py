@@ -69,7 +69,8 @@ class SurfaceFieldConfig:
     # (1 − Φ(s_out)/Φ(s_in), Φ the logistic of s/β, none where the distance grows). VolSDF's
     # density outside the surface piles up along rays that graze it, so its silhouettes lie
     # outside the zero level and training pulls the surface inward (A.blend at 800×800: a cell
-    # inside the truth); NeuS's transmittance halves exactly at the zero level.
+    # inside the truth); NeuS's transmittance halves exactly at the zero level. The surface
+    # preset chooses NeuS where Blender's prior bounds the surface (training/surface_opacity.py).
     opacity: str = "volsdf"
     # Keep the distance within the bounds Blender's occupancy prior gives (surface_band.py:
     # the surface lies in the prior's surface cells less their margin), by projection after
@@ -116,7 +117,7 @@ class SurfaceField(GridAppearance, MarchableField):
         self.register_buffer("beta", torch.tensor(self.initial_beta))
         # The band's bounds are built at the first step (training only: 1-2 s of distance
         # transforms at a 256-cell prior) and fitted to the vertices at each size.
-        self._band_prior = prior if config.prior_band and self._has_band(prior) else None
+        self._band_prior = prior if config.prior_band and prior is not None and prior.bounds_the_surface else None
         self.band: SignedDistanceBounds | None = None
         self.register_buffer("vertex_lower", None, persistent=False)
         self.register_buffer("vertex_upper", None, persistent=False)
@@ -166,12 +167,6 @@ class SurfaceField(GridAppearance, MarchableField):
         distance = F.grid_sample(volume, grid.view(1, -1, 1, 1, 3), mode="bilinear", padding_mode="border",
                                  align_corners=True)
         return distance.view(grid.shape[:3])
-
-    @staticmethod
-    def _has_band(prior: OccupancyPrior | None) -> bool:
-        """Whether ``prior`` bounds the distance: a solid prior that holds its surface cells."""
-        return (prior is not None and prior.kind == "solid" and prior.surface_cells is not None
-                and bool(prior.surface_cells.any()))
 
     @torch.no_grad()
     def _fit_band(self) -> None:

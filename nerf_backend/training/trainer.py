@@ -37,6 +37,7 @@ from ..models.base import Model
 from ..models.registry import build_model, model_class
 from .auto import AVAILABLE_PRIOR, PRIOR_KIND, auto_config, pixel_footprint
 from .collapse_guard import CollapseGuard, Verdict, blank_psnr, recovery_config
+from .surface_opacity import surface_opacity
 from .surface_softness import surface_softness
 
 
@@ -278,8 +279,12 @@ def _plan_run(run: RunFolder, dataset: Path, train_split: DatasetSplit, options:
         elif config.model == "surface":
             config, shaped = surface_softness(config, train_split, ray_bounds.box, user_set)
             decisions.update(shaped)
+    prior = _occupancy_prior(dataset, config)
+    if not options.resume and config.model == "surface":
+        config, shaped = surface_opacity(config, prior, user_set)
+        decisions.update(shaped)
     return _RunPlan(dataset, config, seed, max_seconds, schedule_seconds, stop_at_iterations, device, train_split,
-                    ray_bounds, _occupancy_prior(dataset, config), decisions)
+                    ray_bounds, prior, decisions)
 
 
 def _train_locked(run: RunFolder, plan: _RunPlan, val_split: DatasetSplit | None, options: TrainOptions) -> TrainSummary:
