@@ -12,12 +12,15 @@ interior (solid, not surface) reaches, holds no surface. From that:
 * at a point of the interior side, it is at most minus the distance to the band.
 
 ``band_distances`` gives both distances at the prior's cell centres (in cells, 0 in the
-band); ``SignedDistanceBounds`` reads them anywhere as lower and upper bounds. Measured on the
-three real scenes' 800×800 priors (A.blend, RobotExpressive, 20_specular): the scenes' own
-triangles never leave the bounds, and points off them keep at least half a cell of slack
-(``tests/test_surface_band.py``).
+band); ``SignedDistanceBounds`` reads them anywhere as lower and upper bounds. On the three
+real scenes' 800×800 priors (A.blend, RobotExpressive, 20_specular; 2 million points of each
+scene's own triangles, a scratch check) the triangles never leave the bounds, and points near
+them keep at least half a cell of slack. ``tests/test_occupancy_prior.py`` checks Blender's own
+ray hits on real scenes, ``tests/test_surface_band.py`` a voxelised sphere against its exact
+distance.
 
-Example (a plane of surface cells, grown by one cell on each side, in a box of 9 cells):
+Example (a plane's cells grown by two on each side, as a margin of one marks them, in a box
+of 9 cells):
     >>> import numpy as np
     >>> shell = np.zeros((9, 3, 3), bool); shell[2:7] = True  # the plane at x = 4, grown by 2
     >>> outside, inside = band_distances(shell, shell, margin_cells=1)

@@ -178,7 +178,7 @@ class SurfaceField(GridAppearance, MarchableField):
             self.band = SignedDistanceBounds(prior.surface_cells.numpy(), prior.occupied.numpy(), prior.box_min,
                                              prior.cell_size, prior.margin_cells).to(device)
         band = self.band
-        axes = [axis.to(device=device, dtype=torch.float32) for axis in self._vertex_positions(self.vertices)]
+        axes = [axis.float().to(device) for axis in self._vertex_positions(self.vertices)]  # MPS has no float64
         points = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
         lower, upper = band(points.view(-1, 3))
         unit = self.sdf_grid.unit
