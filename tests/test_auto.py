@@ -55,7 +55,7 @@ def test_settings_given_with_set_are_the_users():
     user_set = frozenset(a.partition("=")[0] for a in assignments)
     config, decisions = auto_config(base, _split(), BOX, PROFILE, user_set)
     assert (config.occupancy_prior, config.grid.resolution, config.grid.view_dependent) == ("none", 40, True)
-    assert decisions["occupancy_prior"]["reason"].startswith("set with --set occupancy_prior; auto would choose 'solid'")
+    assert decisions["occupancy_prior"]["reason"].startswith("set with --set occupancy_prior; the rule would choose 'solid'")
     assert decisions["grid_resolution"]["value"] == 40
     # What was not set is still decided.
     assert config.random_background is True and "random background" in decisions["background"]["reason"]
@@ -108,4 +108,4 @@ def test_the_surface_presets_opacity_is_neus_only_where_the_prior_bounds_the_sur
     user = surface.with_settings(surface=dataclasses.replace(surface.surface, opacity="volsdf"))
     config, decision = surface_opacity(user, bounded, frozenset({"surface.opacity"}))
     assert config.surface.opacity == "volsdf"
-    assert decision["surface_opacity"]["reason"].startswith("set with --set surface.opacity; the rule would choose neus")
+    assert decision["surface_opacity"]["reason"].startswith("set with --set surface.opacity; the rule would choose 'neus'")

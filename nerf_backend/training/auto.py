@@ -29,6 +29,7 @@ import torch
 from ..configs.train_config import TrainConfig
 from ..core.scene_bounds import SceneBounds, vertices_for
 from ..data.dataset import DatasetSplit
+from .decision import decide
 
 MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
 # Which of the prior's fills auto uses (measured with bench: see the README).
@@ -58,13 +59,8 @@ def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profil
     decisions: dict[str, dict] = {}
 
     def choose(name: str, key: str, chosen, reason: str, **details):
-        if key in user_set:
-            value = _setting(base, key)
-            decisions[name] = {"value": value, **details,
-                               "reason": f"set with --set {key}; auto would choose {chosen!r}: {reason}"}
-            return value
-        decisions[name] = {"value": chosen, **details, "reason": reason}
-        return chosen
+        value, decisions[name] = decide(key, chosen, reason, base, user_set, **details)
+        return value
 
     if profile is not None and isinstance(profile.get("view_dependent"), bool):
         dependent = profile["view_dependent"]
@@ -130,11 +126,3 @@ def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profil
         "reason": "one march step per grid cell along the box's diagonal; empty cells are skipped",
     }
     return config, decisions
-
-
-def _setting(config: TrainConfig, key: str):
-    """The value of a dotted setting (``grid.resolution``)."""
-    value = config
-    for part in key.split("."):
-        value = getattr(value, part)
-    return value

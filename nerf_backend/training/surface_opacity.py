@@ -23,6 +23,7 @@ import dataclasses
 
 from ..configs.train_config import TrainConfig
 from ..data.occupancy_prior import OccupancyPrior
+from .decision import decide
 
 
 def surface_opacity(config: TrainConfig, prior: OccupancyPrior | None,
@@ -36,9 +37,6 @@ def surface_opacity(config: TrainConfig, prior: OccupancyPrior | None,
               "unbiased silhouettes leave no flaps" if bounded else
               "no prior bounds the surface (none, or surface.prior_band off): NeuS would leave surfaces no ray "
               "shows, VolSDF's density does not")
-    if "surface.opacity" in user_set:
-        return config, {"surface_opacity": {"value": surface.opacity,
-                                            "reason": f"set with --set surface.opacity; the rule would choose "
-                                                      f"{chosen}: {reason}"}}
-    shaped = config.with_settings(surface=dataclasses.replace(surface, opacity=chosen))
-    return shaped, {"surface_opacity": {"value": chosen, "reason": reason}}
+    value, record = decide("surface.opacity", chosen, reason, config, user_set)
+    shaped = config.with_settings(surface=dataclasses.replace(surface, opacity=value))
+    return shaped, {"surface_opacity": record}

@@ -31,6 +31,7 @@ from ..configs.train_config import TrainConfig
 from ..core.scene_bounds import SceneBounds, vertices_for
 from ..data.dataset import DatasetSplit
 from .auto import pixel_footprint
+from .decision import decide
 
 # Final β in cells: this share of a pixel's footprint in cells, within these bounds (measured
 # at the two ends: 0.36 of a cell a pixel → a quarter cell; 2.9 cells → half a cell).
@@ -50,9 +51,6 @@ def surface_softness(config: TrainConfig, split: DatasetSplit, box: SceneBounds,
     reason = (f"a pixel covers {pixel_cells:.2f} cells of the final grid at the scene's centre: the final β is "
               f"{BETA_PER_PIXEL} of that within [{SHARPEST_BETA_CELLS}, {SOFTEST_BETA_CELLS}] cells (sharper where "
               "pixels resolve VolSDF's silhouette bias)")
-    if "surface.final_beta_cells" in user_set:
-        return config, {"surface_softness": {"value": surface.final_beta_cells,
-                                             "reason": f"set with --set surface.final_beta_cells; the rule would "
-                                                       f"choose {chosen}: {reason}"}}
-    shaped = config.with_settings(surface=dataclasses.replace(surface, final_beta_cells=chosen))
-    return shaped, {"surface_softness": {"value": chosen, "reason": reason}}
+    value, record = decide("surface.final_beta_cells", chosen, reason, config, user_set)
+    shaped = config.with_settings(surface=dataclasses.replace(surface, final_beta_cells=value))
+    return shaped, {"surface_softness": record}
