@@ -17,6 +17,12 @@ SampleDensityFn = Callable[[Tensor, Tensor], Tensor]
 ColourFn = Callable[[Tensor, Tensor], Tensor]
 # field(points [P, 3], directions [P, 3]) -> (density [P], colour [P, 3]) in one call.
 FieldFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
+# render(origins [R, 3], directions [R, 3] (unit), t_near [R], t_far [R]) -> (Σ w·c [R, 3] over no
+# background, opacity Σ w [R], Σ w·t [R]): what a model renders along each stretch of ray.
+RenderFn = Callable[[Tensor, Tensor, Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]
+# seen(points [P, 3], directions [P, 3]) -> (colour [P, 3], seen [P] bool): each point's colour as
+# a camera looking along its direction sees it, and whether that camera sees that point at all.
+SeenColourFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
 # colour(points [P, 3], ray [P]) -> [P, 3] of samples packed from a batch of rays: ``ray`` indexes
 # the rays the function was made for (``MarchableField.ray_colour(directions)``), so work that
 # is the same for every sample of a ray is done once a ray.
