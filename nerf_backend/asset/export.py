@@ -116,8 +116,15 @@ def export_run(run: RunFolder, out: Path, device: torch.device, triangles: int =
 
 
 def _render_fn(model: Model):
-    """The model's render of stretches of rays over no background (bake.RenderFn)."""
+    """The model's render of stretches of rays over no background (bake.RenderFn), its own
+    ``render_chunk`` rays at a time (what bounds its memory)."""
+    chunk = model.render_chunk  # read once: finding it can mean hashing the model's parameters
+
     def render(origins, directions, t_near, t_far):
-        output = final_output(model(origins, directions, t_near, t_far, background=0.0))
-        return output.rgb, output.opacity, output.depth
+        parts = []
+        for start in range(0, len(origins), chunk):
+            rays = slice(start, start + chunk)
+            output = final_output(model(origins[rays], directions[rays], t_near[rays], t_far[rays], background=0.0))
+            parts.append((output.rgb, output.opacity, output.depth))
+        return tuple(torch.cat(part) for part in zip(*parts))
     return render
