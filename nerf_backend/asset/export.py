@@ -118,7 +118,7 @@ def export_run(run: RunFolder, out: Path, device: torch.device, triangles: int =
 def _render_fn(model: Model):
     """The model's render of stretches of rays over no background (bake.RenderFn), its own
     ``render_chunk`` rays at a time (what bounds its memory)."""
-    chunk = model.render_chunk  # read once: finding it can mean hashing the model's parameters
+    chunk = model.render_chunk  # read once: the property looks up the compiled march
 
     def render(origins, directions, t_near, t_far):
         parts = []
