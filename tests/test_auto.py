@@ -6,12 +6,12 @@ import dataclasses
 
 import torch
 
-from nerf_backend.training.auto import auto_config
-from nerf_backend.core.cameras import Intrinsics
 from nerf_backend.configs.presets import PRESETS
 from nerf_backend.configs.train_config import with_overrides
+from nerf_backend.core.cameras import Intrinsics
 from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.data.dataset import DatasetSplit
+from nerf_backend.training.auto import auto_config
 
 BOX = SceneBounds((-1.0, -1.0, -0.25), (1.0, 1.0, 0.25))
 
