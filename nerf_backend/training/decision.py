@@ -23,13 +23,13 @@ def decide(key: str, chosen, reason: str, config: TrainConfig, user_set: frozens
     user set it (``user_set``), else ``chosen``; with the record ``{"value", **details,
     "reason"}`` for the run's decisions."""
     if key in user_set:
-        value = setting(config, key)
+        value = _setting(config, key)
         return value, {"value": value, **details,
                        "reason": f"set with --set {key}; the rule would choose {chosen!r}: {reason}"}
     return chosen, {"value": chosen, **details, "reason": reason}
 
 
-def setting(config: TrainConfig, key: str):
+def _setting(config: TrainConfig, key: str):
     """The value of a dotted setting (``grid.resolution``)."""
     value = config
     for part in key.split("."):
