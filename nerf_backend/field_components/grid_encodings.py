@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..core.tensor_keys import values_key
+from .compiled_grid import channel_rows, read_grids
 
 # (plane axes, line axis) of each of the three components.
 _MODES = (((0, 1), 2), ((0, 2), 1), ((1, 2), 0))
@@ -58,9 +59,9 @@ class VectorMatrixGrid(nn.Module):
         self.vertices: Vertices = _as_vertices(vertices)
         n = self.vertices
         self.planes = nn.ParameterList(
-            [nn.Parameter(init_scale * torch.randn(1, channels, n[a], n[b])) for (a, b), _ in _MODES])
+            [_channel_last(init_scale * torch.randn(1, channels, n[a], n[b])) for (a, b), _ in _MODES])
         self.lines = nn.ParameterList(
-            [nn.Parameter(init_scale * torch.randn(1, channels, n[c], 1)) for _, c in _MODES])
+            [_channel_last(init_scale * torch.randn(1, channels, n[c], 1)) for _, c in _MODES])
 
     @property
     def out_dims(self) -> int:
@@ -68,7 +69,8 @@ class VectorMatrixGrid(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         if x.device.type == "cpu":
-            return self._forward_rows(x)
+            compiled = read_grids([self], x)
+            return compiled if compiled is not None else self._forward_rows(x)
         return self._forward_grid_sample(x)
 
     def _forward_rows(self, x: Tensor) -> Tensor:
@@ -90,12 +92,11 @@ class VectorMatrixGrid(nn.Module):
         return torch.cat(outputs, dim=1)
 
     def _row_tables(self) -> tuple[list[Tensor], list[Tensor]]:
-        """Each plane as ``[Na·Nb, C]`` and each line as ``[N, C]``. A copy with gradients in
-        training; without, made once per version of the weights and kept (rendering reads
-        the grid a few hundred times between two weight updates)."""
+        """Each plane as ``[Na·Nb, C]`` and each line as ``[N, C]``: views of the channel-last
+        parameters. Were a parameter stored otherwise (set from outside), a copy: with
+        gradients made each call, without them once per version of the weights."""
         def tables():
-            return ([p[0].permute(1, 2, 0).reshape(-1, self.channels).contiguous() for p in self.planes],
-                    [line[0, :, :, 0].T.contiguous() for line in self.lines])
+            return [channel_rows(p) for p in self.planes], [channel_rows(line) for line in self.lines]
         if torch.is_grad_enabled():
             return tables()
         key = values_key([*self.planes, *self.lines])
@@ -124,9 +125,9 @@ class VectorMatrixGrid(nn.Module):
         n = self.vertices = _as_vertices(vertices)
         # New Parameter objects (not .data swaps): autograd keeps each parameter's shape.
         for i, ((a, b), c) in enumerate(_MODES):
-            self.planes[i] = nn.Parameter(
+            self.planes[i] = _channel_last(
                 F.interpolate(self.planes[i], size=(n[a], n[b]), mode="bilinear", align_corners=True))
-            self.lines[i] = nn.Parameter(
+            self.lines[i] = _channel_last(
                 F.interpolate(self.lines[i], size=(n[c], 1), mode="bilinear", align_corners=True))
 
     @torch.no_grad()
@@ -161,6 +162,12 @@ def _axis_corners(coordinate: Tensor, vertices: int) -> tuple[Tensor, Tensor, Te
     lower = position.detach().floor().clamp(0, vertices - 2)
     from_lower = position - lower
     return lower.long(), (1.0 - from_lower.abs()).clamp_min(0.0), (1.0 - (from_lower - 1.0).abs()).clamp_min(0.0)
+
+
+def _channel_last(values: Tensor) -> nn.Parameter:
+    """A plane ``[1, C, Na, Nb]`` or line ``[1, C, N, 1]`` stored channel-last (a vertex's C
+    channels contiguous): the shape PyTorch's ops expect, the layout the row reads want."""
+    return nn.Parameter(values.detach().contiguous(memory_format=torch.channels_last))
 
 
 def _as_vertices(vertices: Vertices | int) -> Vertices:

@@ -39,7 +39,11 @@ class GridAppearance:
 
     def colour_with(self, x: Tensor, directions: Tensor, extra: Tensor | None = None) -> Tensor:
         """``colour``, with the ``extra_inputs`` features given (``[P, extra_inputs]``)."""
-        features = [self.appearance_basis(self.appearance_grid(self.normalise(x)))]
+        return self.colour_from_grid(self.appearance_grid(self.normalise(x)), directions, extra)
+
+    def colour_from_grid(self, grid_features: Tensor, directions: Tensor, extra: Tensor | None = None) -> Tensor:
+        """``colour_with`` from the appearance grid's features at the points, already read."""
+        features = [self.appearance_basis(grid_features)]
         if self.config.view_dependent:
             features.append(self.direction_encoding(directions))
         if extra is not None:

@@ -16,6 +16,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..core.scene_bounds import SceneBounds, vertices_for
+from ..field_components.compiled_grid import read_grids
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
 from ..field_components.grid_growth import grown_resolution
 from .base import MarchableField, SampleCost, cell_corner_max
@@ -95,6 +96,17 @@ class GridField(GridAppearance, MarchableField):
 
     def density(self, x: Tensor) -> Tensor:
         return self.density_from_features(self.density_grid(self.normalise(x)).sum(dim=-1))
+
+    def forward(self, x: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+        """Density and colour of the same points, both grids read in one compiled pass where
+        it applies (training on the CPU: ``compiled_grid``), else one after the other."""
+        features = read_grids([self.density_grid, self.appearance_grid], self.normalise(x))
+        if features is None:
+            return super().forward(x, directions)
+        density_features, appearance_features = features.split(
+            [self.density_grid.out_dims, self.appearance_grid.out_dims], dim=1)
+        return (self.density_from_features(density_features.sum(dim=-1)),
+                self.colour_from_grid(appearance_features, directions))
 
     def sample_cost(self) -> dict[str, SampleCost]:
         # Each channel of a component reads 4 plane and 2 line values, and interpolating

@@ -26,6 +26,10 @@ from pathlib import Path
 
 SOURCES = Path(__file__).resolve().parent
 FLAGS = ("-O3", "-std=c99", "-shared", "-fPIC", "-pthread", "-fno-math-errno")
+# Code for the running CPU (AVX-512 where it has it, AVX2 where not: this project's machines
+# differ), keyed by the CPU's identity so a cache shared between machines never runs code the
+# CPU lacks; a compiler that refuses the flag builds portable code.
+NATIVE_FLAGS = ("-march=native",)
 # Where built kernels are kept: NERF_KERNEL_CACHE, else the user's cache folder.
 CACHE_VARIABLE = "NERF_KERNEL_CACHE"
 
@@ -47,6 +51,18 @@ def c_compiler() -> str | None:
 
 
 @functools.cache
+def cpu_identity() -> str:
+    """The CPU's model and instruction-set flags (Linux's /proc/cpuinfo), else what the
+    platform says of the processor."""
+    try:
+        text = Path("/proc/cpuinfo").read_text(errors="replace")
+    except OSError:
+        return platform.processor()
+    wanted = ("model name", "flags", "Features", "CPU part")
+    return "\n".join(sorted({line for line in text.splitlines() if line.split(":")[0].strip() in wanted}))
+
+
+@functools.cache
 def load_kernel(name: str) -> tuple[ctypes.CDLL | None, str | None]:
     """The library built from ``NAME.c`` and None, or None and why it is unavailable (no
     compiler, a failed build); built once per source, compiler and machine, then reused."""
@@ -55,8 +71,9 @@ def load_kernel(name: str) -> tuple[ctypes.CDLL | None, str | None]:
     if compiler is None:
         return None, "no C compiler (cc, gcc or clang) on the PATH; set CC to use another"
     text = source.read_bytes()
-    key = hashlib.sha256(b"\0".join([text, compiler.encode(), " ".join(FLAGS).encode(),
-                                     platform.machine().encode(), platform.system().encode()])).hexdigest()[:16]
+    key = hashlib.sha256(b"\0".join([text, compiler.encode(), " ".join(FLAGS + NATIVE_FLAGS).encode(),
+                                     platform.machine().encode(), platform.system().encode(),
+                                     cpu_identity().encode()])).hexdigest()[:16]
     folder = cache_folder()
     library = folder / f"{name}-{key}.so"
     if not library.is_file():
@@ -64,8 +81,11 @@ def load_kernel(name: str) -> tuple[ctypes.CDLL | None, str | None]:
             folder.mkdir(parents=True, exist_ok=True)
             with tempfile.TemporaryDirectory(dir=folder) as scratch:
                 built = Path(scratch) / library.name
-                result = subprocess.run([compiler, *FLAGS, str(source), "-o", str(built), "-lm"],
-                                        capture_output=True, text=True, timeout=120, check=False)
+                for flags in ((*FLAGS, *NATIVE_FLAGS), FLAGS):
+                    result = subprocess.run([compiler, *flags, str(source), "-o", str(built), "-lm"],
+                                            capture_output=True, text=True, timeout=120, check=False)
+                    if result.returncode == 0:
+                        break
                 if result.returncode != 0:
                     last = (result.stderr.strip().splitlines() or ["no message"])[-1]
                     return None, f"{compiler} could not build {source}: {last}"

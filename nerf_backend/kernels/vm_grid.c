@@ -1,0 +1,345 @@
+/* The factorised (vector-matrix) feature grid of the grid field, read and differentiated over
+ * packed samples on the CPU: what nerf_backend/field_components/grid_encodings.py does with
+ * PyTorch's embedding_bag (one gather and one scatter of a table per plane and line, a dense
+ * gradient the size of the grid filled through a sort of the indices) is here one pass over
+ * the samples per component.
+ *
+ * A component m of a grid holds a plane P[a, b, C] and a line L[c, C] (channel-last: a
+ * corner's C channels are one contiguous row, one or two cache lines), and a sample's features
+ * are  F[k] = (sum_i w_i P[row_i, k]) * (u_0 L[c_0, k] + u_1 L[c_0 + 1, k])  over its 4 plane
+ * corners and 2 line corners. Backward scatters  w_i * g[k] * line[k]  into the plane's rows and
+ * u_j * g[k] * plane[k]  into the line's, and marks each row it touched (a byte a row), so
+ * the optimiser can update only those rows (sparse_adam below).
+ *
+ * Threads: forward splits the samples (outputs are disjoint); backward gives each thread whole
+ * components (a component's plane and line belong to one thread, so no two threads ever add
+ * into the same row: no atomics, no per-thread copies of the grid), balanced by channels.
+ *
+ * Plain C and POSIX threads, no Python API: built by nerf_backend/kernels/build.py and called
+ * through ctypes (which releases the GIL).
+ */
+
+#include <math.h>
+#include <pthread.h>
+#include <stdint.h>
+#include <string.h>
+
+#define MAX_THREADS 64
+#define MAX_TASKS 16
+
+typedef struct {
+    const float *plane;     /* [na * nb, channels] */
+    const float *line;      /* [nc, channels] */
+    float *features;        /* forward: out + this component's first column */
+    const float *grad;      /* backward: grad_out + this component's first column */
+    float *plane_grad;      /* [na * nb, channels], added into */
+    float *line_grad;       /* [nc, channels], added into */
+    uint8_t *plane_touched; /* [na * nb] or NULL: set to 1 where a row got gradient */
+    uint8_t *line_touched;  /* [nc] or NULL */
+    int64_t row_stride;     /* floats between two samples' rows of features / grad */
+    int32_t axis_a, axis_b, axis_c;
+    int32_t na, nb, nc;
+    int32_t channels;
+    int32_t pad;
+} Component;
+
+typedef struct {
+    float low_weight, high_weight;
+    int32_t lower;
+} AxisCorner;
+
+/* The lower of the two vertices read around coordinate x in [-1, 1] on an axis of n vertices
+ * (kept inside the grid) and the hat weights of both: linear inside, fading to 0 within a cell
+ * outside the grid (grid_sample's zero padding). NaN reads nothing. */
+static inline AxisCorner axis_corner(float x, int32_t n) {
+    AxisCorner corner = {0.0f, 0.0f, 0};
+    float position = (x + 1.0f) * (0.5f * (float)(n - 1));
+    if (!(position == position)) return corner;
+    float lower = floorf(position);
+    if (!(lower >= 0.0f)) lower = 0.0f;
+    if (lower > (float)(n - 2)) lower = (float)(n - 2);
+    float from_lower = position - lower;
+    corner.lower = (int32_t)lower;
+    const float low = 1.0f - fabsf(from_lower), high = 1.0f - fabsf(from_lower - 1.0f);
+    corner.low_weight = low > 0.0f ? low : 0.0f;
+    corner.high_weight = high > 0.0f ? high : 0.0f;
+    return corner;
+}
+
+typedef struct {
+    AxisCorner a, b, c;
+    int64_t row;            /* the plane's lower corner row */
+} SampleCorners;
+
+static inline SampleCorners corners_of(const Component *m, const float *x) {
+    SampleCorners s;
+    s.a = axis_corner(x[m->axis_a], m->na);
+    s.b = axis_corner(x[m->axis_b], m->nb);
+    s.c = axis_corner(x[m->axis_c], m->nc);
+    s.row = (int64_t)s.a.lower * m->nb + s.b.lower;
+    return s;
+}
+
+/* Channels go in blocks of 8 floats, each one vector (GCC's and Clang's vector extension:
+ * AVX2 on x86, NEON pairs on ARM). Written out, not left to the auto-vectoriser: it made the
+ * gradient's adds scalar stores, which the next sample's vector loads of the same row could
+ * not take from the store buffer (a stall on every row, 6x slower here). A component's
+ * channels must be a multiple of BLOCK (the caller checks; others train through PyTorch). */
+#define BLOCK 8
+typedef float vec __attribute__((vector_size(BLOCK * sizeof(float))));
+
+static inline vec load(const float *p) { vec v; memcpy(&v, p, sizeof v); return v; }
+static inline void store(float *p, vec v) { memcpy(p, &v, sizeof v); }
+static inline vec splat(float x) { vec v = {x, x, x, x, x, x, x, x}; return v; }
+
+static void forward_sample(const Component *m, const float *x, float *out) {
+    const SampleCorners s = corners_of(m, x);
+    const int32_t C = m->channels;
+    const vec w00 = splat(s.a.low_weight * s.b.low_weight), w01 = splat(s.a.low_weight * s.b.high_weight);
+    const vec w10 = splat(s.a.high_weight * s.b.low_weight), w11 = splat(s.a.high_weight * s.b.high_weight);
+    const vec u0 = splat(s.c.low_weight), u1 = splat(s.c.high_weight);
+    const float *p00 = m->plane + s.row * C, *p01 = p00 + C, *p10 = p00 + (int64_t)m->nb * C, *p11 = p10 + C;
+    const float *l0 = m->line + (int64_t)s.c.lower * C, *l1 = l0 + C;
+    for (int32_t k = 0; k < C; k += BLOCK) {
+        vec plane = w00 * load(p00 + k) + w01 * load(p01 + k) + w10 * load(p10 + k) + w11 * load(p11 + k);
+        store(out + k, plane * (u0 * load(l0 + k) + u1 * load(l1 + k)));
+    }
+}
+
+static inline void add_into(float *p, vec v) { store(p, load(p) + v); }
+
+static void backward_sample(const Component *m, const float *x, const float *g) {
+    const SampleCorners s = corners_of(m, x);
+    const int32_t C = m->channels;
+    const vec w00 = splat(s.a.low_weight * s.b.low_weight), w01 = splat(s.a.low_weight * s.b.high_weight);
+    const vec w10 = splat(s.a.high_weight * s.b.low_weight), w11 = splat(s.a.high_weight * s.b.high_weight);
+    const vec u0 = splat(s.c.low_weight), u1 = splat(s.c.high_weight);
+    const int64_t r00 = s.row, r01 = r00 + 1, r10 = r00 + m->nb, r11 = r10 + 1;
+    const int64_t c0 = s.c.lower, c1 = c0 + 1;
+    const float *p00 = m->plane + r00 * C, *p01 = m->plane + r01 * C;
+    const float *p10 = m->plane + r10 * C, *p11 = m->plane + r11 * C;
+    const float *l0 = m->line + c0 * C, *l1 = m->line + c1 * C;
+    float *gp00 = m->plane_grad + r00 * C, *gp01 = m->plane_grad + r01 * C;
+    float *gp10 = m->plane_grad + r10 * C, *gp11 = m->plane_grad + r11 * C;
+    float *gl0 = m->line_grad + c0 * C, *gl1 = m->line_grad + c1 * C;
+    for (int32_t k = 0; k < C; k += BLOCK) {
+        const vec gk = load(g + k);  /* d out / d plane = g * line; d out / d line = g * plane */
+        const vec to_plane = gk * (u0 * load(l0 + k) + u1 * load(l1 + k));
+        const vec to_line = gk * (w00 * load(p00 + k) + w01 * load(p01 + k) + w10 * load(p10 + k) + w11 * load(p11 + k));
+        add_into(gp00 + k, w00 * to_plane);
+        add_into(gp01 + k, w01 * to_plane);
+        add_into(gp10 + k, w10 * to_plane);
+        add_into(gp11 + k, w11 * to_plane);
+        add_into(gl0 + k, u0 * to_line);
+        add_into(gl1 + k, u1 * to_line);
+    }
+    if (m->plane_touched) {
+        m->plane_touched[r00] = m->plane_touched[r01] = m->plane_touched[r10] = m->plane_touched[r11] = 1;
+    }
+    if (m->line_touched) m->line_touched[c0] = m->line_touched[c1] = 1;
+}
+
+typedef struct {
+    const Component *components;
+    int32_t count;
+    const float *x;
+    int64_t begin, end;     /* forward: the samples of this thread */
+    int32_t owned[MAX_TASKS];  /* backward: the components of this thread */
+    int32_t owned_count;
+} Work;
+
+/* The rows a sample will read, asked of memory PREFETCH_AHEAD samples before it is reached:
+ * samples of different rays land on rows far apart in a grid larger than the caches, and the
+ * loads of one sample alone leave most of that latency waiting. */
+#define PREFETCH_AHEAD 6
+
+static inline void prefetch_rows(const Component *m, const float *x, int write) {
+    const SampleCorners s = corners_of(m, x);
+    const int64_t C = m->channels;
+    const float *plane = write ? m->plane_grad : m->plane, *line = write ? m->line_grad : m->line;
+    const float *rows[4] = {plane + s.row * C, plane + (s.row + m->nb) * C, line + (int64_t)s.c.lower * C, NULL};
+    for (int i = 0; i < 3; ++i)  /* each pair of neighbouring rows: 2C floats from its first */
+        for (int64_t offset = 0; offset < 2 * C; offset += 16) {
+            if (write) __builtin_prefetch(rows[i] + offset, 1, 3);
+            else __builtin_prefetch(rows[i] + offset, 0, 3);
+        }
+}
+
+static void *forward_work(void *arg) {
+    const Work *w = (const Work *)arg;
+    for (int64_t p = w->begin; p < w->end; ++p) {
+        if (PREFETCH_AHEAD && p + PREFETCH_AHEAD < w->end)
+            for (int32_t i = 0; i < w->count; ++i) prefetch_rows(&w->components[i], w->x + 3 * (p + PREFETCH_AHEAD), 0);
+        for (int32_t i = 0; i < w->count; ++i) {
+            const Component *m = &w->components[i];
+            forward_sample(m, w->x + 3 * p, m->features + p * m->row_stride);
+        }
+    }
+    return NULL;
+}
+
+/* Samples outer, the thread's components inner: each sample's row of the incoming gradient is
+ * read in one piece (component by component over all samples, the strided reads missed the
+ * cache on every sample: 5x slower). */
+static void *backward_work(void *arg) {
+    const Work *w = (const Work *)arg;
+    for (int64_t p = w->begin; p < w->end; ++p) {
+        if (PREFETCH_AHEAD && p + PREFETCH_AHEAD < w->end)
+            for (int32_t j = 0; j < w->owned_count; ++j) {
+                const Component *m = &w->components[w->owned[j]];
+                prefetch_rows(m, w->x + 3 * (p + PREFETCH_AHEAD), 0);
+                prefetch_rows(m, w->x + 3 * (p + PREFETCH_AHEAD), 1);
+            }
+        for (int32_t j = 0; j < w->owned_count; ++j) {
+            const Component *m = &w->components[w->owned[j]];
+            backward_sample(m, w->x + 3 * p, m->grad + p * m->row_stride);
+        }
+    }
+    return NULL;
+}
+
+static int64_t clamp_threads(int64_t threads, int64_t most) {
+    if (threads > most) threads = most;
+    if (threads > MAX_THREADS) threads = MAX_THREADS;
+    return threads < 1 ? 1 : threads;
+}
+
+/* Runs work[0] on the calling thread and the others on new threads; a thread that cannot be
+ * started runs its share here. */
+static void run_all(void *(*fn)(void *), Work *work, int64_t threads) {
+    pthread_t handles[MAX_THREADS];
+    int started[MAX_THREADS] = {0};
+    for (int64_t t = 1; t < threads; ++t)
+        started[t] = pthread_create(&handles[t], NULL, fn, &work[t]) == 0;
+    fn(&work[0]);
+    for (int64_t t = 1; t < threads; ++t) {
+        if (started[t]) pthread_join(handles[t], NULL);
+        else fn(&work[t]);
+    }
+}
+
+/* Features of `points` samples x [P, 3] in [-1, 1] for each component. */
+int vm_forward(const Component *components, int32_t count, const float *x, int64_t points, int64_t threads) {
+    if (count < 1 || count > MAX_TASKS) return -1;
+    for (int32_t i = 0; i < count; ++i)
+        if (components[i].channels < 1 || components[i].channels % BLOCK != 0) return -2;
+    threads = clamp_threads(threads, (points + 1023) / 1024);
+    Work work[MAX_THREADS];
+    for (int64_t t = 0; t < threads; ++t) {
+        work[t].components = components;
+        work[t].count = count;
+        work[t].x = x;
+        work[t].begin = points * t / threads;
+        work[t].end = points * (t + 1) / threads;
+        work[t].owned_count = 0;
+    }
+    run_all(forward_work, work, threads);
+    return 0;
+}
+
+/* Adds each component's gradient into its plane_grad and line_grad (and marks the rows). Each
+ * component goes whole to one thread: the largest first, to the least loaded thread. */
+int vm_backward(const Component *components, int32_t count, const float *x, int64_t points, int64_t threads) {
+    if (count < 1 || count > MAX_TASKS) return -1;
+    for (int32_t i = 0; i < count; ++i)
+        if (components[i].channels < 1 || components[i].channels % BLOCK != 0) return -2;
+    threads = clamp_threads(threads, count);
+    Work work[MAX_THREADS];
+    int64_t load[MAX_THREADS] = {0};
+    int32_t taken[MAX_TASKS] = {0};
+    for (int64_t t = 0; t < threads; ++t) {
+        work[t].components = components;
+        work[t].count = count;
+        work[t].x = x;
+        work[t].begin = 0;
+        work[t].end = points;
+        work[t].owned_count = 0;
+    }
+    for (int32_t round = 0; round < count; ++round) {
+        int32_t largest = -1;
+        for (int32_t i = 0; i < count; ++i)
+            if (!taken[i] && (largest < 0 || components[i].channels > components[largest].channels)) largest = i;
+        taken[largest] = 1;
+        int64_t least = 0;
+        for (int64_t t = 1; t < threads; ++t)
+            if (load[t] < load[least]) least = t;
+        work[least].owned[work[least].owned_count++] = largest;
+        load[least] += components[largest].channels;
+    }
+    run_all(backward_work, work, threads);
+    return 0;
+}
+
+/* Adam on the rows of a [rows, width] parameter that the step touched (touched[r] = 1), the
+ * others left as they are (DVGO's and Instant-NGP's masked Adam). A row last updated at step
+ * last[r] has skipped step - last[r] - 1 steps whose gradient was zero: its moments decay by
+ * beta^skipped first, as dense Adam's would have (its value's drift over those steps, which
+ * dense Adam would also have made, is not). Then the row's gradient is zeroed and its mark
+ * cleared, so the buffers are ready for the next step without a pass over the whole grid.
+ * `step` counts from 1; bias correction uses it, as dense Adam's does. */
+typedef struct {
+    float *param, *grad, *exp_avg, *exp_avg_sq;
+    uint8_t *touched;
+    int32_t *last;
+    int64_t rows, width, step;
+    float lr, beta1, beta2, eps;
+    int64_t begin, end;
+    int64_t updated;
+} AdamWork;
+
+static void *adam_work(void *arg) {
+    AdamWork *w = (AdamWork *)arg;
+    const float correction1 = 1.0f - powf(w->beta1, (float)w->step);
+    const float correction2_root = sqrtf(1.0f - powf(w->beta2, (float)w->step));
+    const float step_size = w->lr / correction1;
+    int64_t updated = 0;
+    for (int64_t r = w->begin; r < w->end; ++r) {
+        if (!w->touched[r]) continue;
+        w->touched[r] = 0;
+        ++updated;
+        int64_t skipped = w->step - (int64_t)w->last[r] - 1;
+        float decay1 = 1.0f, decay2 = 1.0f;
+        if (skipped > 0) {
+            decay1 = powf(w->beta1, (float)skipped);
+            decay2 = powf(w->beta2, (float)skipped);
+        }
+        w->last[r] = (int32_t)w->step;
+        float *p = w->param + r * w->width, *g = w->grad + r * w->width;
+        float *m = w->exp_avg + r * w->width, *v = w->exp_avg_sq + r * w->width;
+        for (int64_t k = 0; k < w->width; ++k) {
+            float mk = w->beta1 * (decay1 * m[k]) + (1.0f - w->beta1) * g[k];
+            float vk = w->beta2 * (decay2 * v[k]) + (1.0f - w->beta2) * g[k] * g[k];
+            m[k] = mk;
+            v[k] = vk;
+            p[k] -= step_size * mk / (sqrtf(vk) / correction2_root + w->eps);
+            g[k] = 0.0f;
+        }
+    }
+    w->updated = updated;
+    return NULL;
+}
+
+/* Returns the number of rows updated. */
+int64_t sparse_adam(float *param, float *grad, float *exp_avg, float *exp_avg_sq, uint8_t *touched, int32_t *last,
+                    int64_t rows, int64_t width, int64_t step, float lr, float beta1, float beta2, float eps,
+                    int64_t threads) {
+    threads = clamp_threads(threads, (rows + 4095) / 4096);
+    AdamWork work[MAX_THREADS];
+    pthread_t handles[MAX_THREADS];
+    int started[MAX_THREADS] = {0};
+    for (int64_t t = 0; t < threads; ++t) {
+        AdamWork w = {param, grad, exp_avg, exp_avg_sq, touched, last, rows, width, step, lr, beta1, beta2, eps,
+                      rows * t / threads, rows * (t + 1) / threads, 0};
+        work[t] = w;
+    }
+    for (int64_t t = 1; t < threads; ++t)
+        started[t] = pthread_create(&handles[t], NULL, adam_work, &work[t]) == 0;
+    adam_work(&work[0]);
+    int64_t updated = work[0].updated;
+    for (int64_t t = 1; t < threads; ++t) {
+        if (started[t]) pthread_join(handles[t], NULL);
+        else adam_work(&work[t]);
+        updated += work[t].updated;
+    }
+    return updated;
+}
