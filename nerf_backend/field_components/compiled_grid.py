@@ -144,7 +144,7 @@ class _ReadGrids(torch.autograd.Function):
         grids = ctx.grids
         grad = grad_features.float().contiguous()
         tables = [_rows_in_place(p) for p in parameters]
-        sinks = [_gradient_sink(grid) for grid in grids]
+        sinks = [_gradient_sink(grid, parameters[6 * g:6 * g + 6]) for g, grid in enumerate(grids)]
         grads, touched, returned = [], [], []
         for grid, sink, pair in zip(grids, sinks, [parameters[6 * g:6 * g + 6] for g in range(len(grids))]):
             if sink is not None:  # the rows go to the grid's own buffers, for SparseRowAdam
@@ -161,9 +161,6 @@ class _ReadGrids(torch.autograd.Function):
             _check(compiled_grid_library().vm_backward(components, len(components), ctypes.c_void_p(x.data_ptr()),
                                                        ctypes.c_int64(x.shape[0]),
                                                        ctypes.c_int64(torch.get_num_threads())))
-        for sink in sinks:
-            if sink is not None:
-                sink.filled()
         return (None, None, *returned)
 
 
@@ -172,10 +169,12 @@ def _check(status: int) -> None:
         raise RuntimeError(f"vm_grid.c refused the call (status {status})")
 
 
-def _gradient_sink(grid):
-    """The grid's row-gradient buffers where an optimiser that updates rows has given it some
-    (``SparseRowAdam.attach``), else None (dense gradients through autograd)."""
-    return getattr(grid, "row_gradients", None)
+def _gradient_sink(grid, parameters):
+    """The grid's row-gradient buffers where an optimiser that updates rows gave it some for
+    these very parameters (``training/sparse_adam.RowSparseAdam``), else None: dense gradients
+    through autograd."""
+    sink = getattr(grid, "row_gradients", None)
+    return sink if sink is not None and sink.serves(list(parameters)) else None
 
 
 def read_grids(grids, x: Tensor) -> Tensor | None:

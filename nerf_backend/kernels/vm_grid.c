@@ -277,14 +277,17 @@ int vm_backward(const Component *components, int32_t count, const float *x, int6
  * dense Adam would also have made, is not). Then the row's gradient is zeroed and its mark
  * cleared, so the buffers are ready for the next step without a pass over the whole grid.
  * `step` counts from 1; bias correction uses it, as dense Adam's does. */
+#define DECAY_TABLE 256
+
 typedef struct {
     float *param, *grad, *exp_avg, *exp_avg_sq;
     uint8_t *touched;
-    int32_t *last;
+    float *last;            /* the step each row was last updated at (exact below 2^24 steps) */
     int64_t rows, width, step;
     float lr, beta1, beta2, eps;
     int64_t begin, end;
     int64_t updated;
+    const float *decay1, *decay2;  /* beta^k for k < DECAY_TABLE: powf a row cost more than its update */
 } AdamWork;
 
 static void *adam_work(void *arg) {
@@ -299,11 +302,14 @@ static void *adam_work(void *arg) {
         ++updated;
         int64_t skipped = w->step - (int64_t)w->last[r] - 1;
         float decay1 = 1.0f, decay2 = 1.0f;
-        if (skipped > 0) {
+        if (skipped > 0 && skipped < DECAY_TABLE) {
+            decay1 = w->decay1[skipped];
+            decay2 = w->decay2[skipped];
+        } else if (skipped > 0) {
             decay1 = powf(w->beta1, (float)skipped);
             decay2 = powf(w->beta2, (float)skipped);
         }
-        w->last[r] = (int32_t)w->step;
+        w->last[r] = (float)w->step;
         float *p = w->param + r * w->width, *g = w->grad + r * w->width;
         float *m = w->exp_avg + r * w->width, *v = w->exp_avg_sq + r * w->width;
         for (int64_t k = 0; k < w->width; ++k) {
@@ -320,16 +326,22 @@ static void *adam_work(void *arg) {
 }
 
 /* Returns the number of rows updated. */
-int64_t sparse_adam(float *param, float *grad, float *exp_avg, float *exp_avg_sq, uint8_t *touched, int32_t *last,
+int64_t sparse_adam(float *param, float *grad, float *exp_avg, float *exp_avg_sq, uint8_t *touched, float *last,
                     int64_t rows, int64_t width, int64_t step, float lr, float beta1, float beta2, float eps,
                     int64_t threads) {
     threads = clamp_threads(threads, (rows + 4095) / 4096);
     AdamWork work[MAX_THREADS];
     pthread_t handles[MAX_THREADS];
     int started[MAX_THREADS] = {0};
+    float decay1[DECAY_TABLE], decay2[DECAY_TABLE];
+    decay1[0] = decay2[0] = 1.0f;
+    for (int k = 1; k < DECAY_TABLE; ++k) {
+        decay1[k] = decay1[k - 1] * beta1;
+        decay2[k] = decay2[k - 1] * beta2;
+    }
     for (int64_t t = 0; t < threads; ++t) {
         AdamWork w = {param, grad, exp_avg, exp_avg_sq, touched, last, rows, width, step, lr, beta1, beta2, eps,
-                      rows * t / threads, rows * (t + 1) / threads, 0};
+                      rows * t / threads, rows * (t + 1) / threads, 0, decay1, decay2};
         work[t] = w;
     }
     for (int64_t t = 1; t < threads; ++t)

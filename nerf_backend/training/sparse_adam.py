@@ -1,0 +1,124 @@
+"""Adam that updates only the grid rows a step touched (DVGO's and Instant-NGP's masked Adam),
+for the factorised grids trained through the compiled kernel on the CPU.
+
+A step of 1 024 rays on lego at 800×800 touches a few percent of a grid's rows; dense Adam
+reads and writes all of them (p, g, m, v: 28 bytes a parameter) and the dense gradient must be
+zeroed each step besides. Here ``compiled_grid``'s backward adds each sample's gradient into a
+buffer of the grid's own and marks the rows; ``vm_grid.c``'s ``sparse_adam`` then updates the
+marked rows, zeroes their gradient and clears their marks, and nothing else is touched.
+
+A row that skipped k steps has its moments decayed by β^k before its update, as dense Adam's
+would have been by k steps of zero gradient; the drift dense Adam would have given its value over
+those k steps (its momentum carrying on) is not applied: the rows a step leaves are those no
+ray of it saw. Bias correction uses the run's step count, as dense Adam's does. Every other
+parameter (the networks, a grid read through PyTorch) goes through PyTorch's Adam as before:
+a parameter with a ``.grad`` is dense.
+
+Example:
+    >>> import torch
+    >>> from nerf_backend.field_components.grid_encodings import VectorMatrixGrid
+    >>> grid = VectorMatrixGrid(channels=8, vertices=6)
+    >>> optimiser = RowSparseAdam([{"params": list(grid.parameters()), "lr": 0.1}], grids=[grid])
+    >>> x = torch.zeros(1, 3)  # the centre: 4 rows of each plane, 2 of each line
+    >>> grid(x).sum().backward()
+    >>> before = grid.planes[0].detach().clone()
+    >>> optimiser.step()
+    >>> changed = (grid.planes[0] != before).any(dim=1).sum().item()
+    >>> changed == 4 or optimiser.rows_updated is None  # None: no compiler, dense Adam did it
+    True
+"""
+
+from __future__ import annotations
+
+import ctypes
+
+import torch
+from torch import Tensor
+
+from ..field_components.compiled_grid import channel_rows, compiled_grid_library
+
+
+class RowGradients:
+    """A grid's gradient buffers (channel-last, as its planes and lines) and row marks, which the
+    compiled backward fills for the parameters it was made for."""
+
+    def __init__(self, parameters: list[Tensor]) -> None:
+        self.pointers = [(p.data_ptr(), tuple(p.shape)) for p in parameters]
+        self.gradients = [torch.zeros_like(p, memory_format=torch.channels_last) for p in parameters]
+        self.marks = [torch.zeros(channel_rows(p).shape[0], dtype=torch.uint8) for p in parameters]
+
+    def serves(self, parameters: list[Tensor]) -> bool:
+        """Whether these are still the parameters the buffers were made for (a grown grid has
+        new ones: its gradient then goes through autograd until a new optimiser attaches)."""
+        return [(p.data_ptr(), tuple(p.shape)) for p in parameters] == self.pointers
+
+    def buffers(self) -> list[Tensor]:
+        return self.gradients
+
+    def masks(self) -> list[Tensor]:
+        return self.marks
+
+
+class RowSparseAdam(torch.optim.Adam):
+    """``torch.optim.Adam`` whose ``grids``' planes and lines, when their gradient came through
+    the compiled kernel, are updated row by row (see the module's notes); ``rows_updated``: the
+    rows the last step updated (None where no compiler is found: then every parameter is dense)."""
+
+    def __init__(self, params, grids, **adam) -> None:
+        super().__init__(params, **adam)
+        self.rows_updated: int | None = None
+        self._library = compiled_grid_library()
+        self._sparse: dict[int, tuple[RowGradients, int]] = {}
+        if self._library is None:
+            return
+        for grid in grids:
+            parameters = [p for pair in zip(grid.planes, grid.lines) for p in pair]
+            sink = RowGradients(parameters)
+            grid.row_gradients = sink
+            for index, parameter in enumerate(parameters):
+                self._sparse[id(parameter)] = (sink, index)
+
+    @torch.no_grad()
+    def step(self, closure=None):
+        if self._library is None:
+            return super().step(closure)
+        sparse = []
+        for group in self.param_groups:
+            for parameter in group["params"]:
+                entry = self._sparse.get(id(parameter))
+                if entry is None:
+                    continue
+                sink, index = entry
+                if parameter.grad is not None:  # read through PyTorch this step: dense, with the rows
+                    parameter.grad.add_(sink.gradients[index])
+                    sink.gradients[index].zero_()
+                    sink.marks[index].zero_()
+                else:
+                    sparse.append((group, parameter, sink, index))
+        loss = super().step(closure)  # the dense parameters (those with a .grad)
+        updated = 0
+        for group, parameter, sink, index in sparse:
+            updated += self._sparse_step(group, parameter, sink.gradients[index], sink.marks[index])
+        self.rows_updated = updated
+        return loss
+
+    def _sparse_step(self, group: dict, parameter: Tensor, gradient: Tensor, marks: Tensor) -> int:
+        state = self.state[parameter]
+        if not state or "exp_avg" not in state:
+            state["step"] = torch.zeros((), dtype=torch.float32)
+            state["exp_avg"] = torch.zeros_like(parameter, memory_format=torch.channels_last)
+            state["exp_avg_sq"] = torch.zeros_like(parameter, memory_format=torch.channels_last)
+        for key in ("exp_avg", "exp_avg_sq"):  # a checkpoint of dense Adam's may hold another layout
+            if not state[key].is_contiguous(memory_format=torch.channels_last):
+                state[key] = state[key].contiguous(memory_format=torch.channels_last)
+        rows = marks.shape[0]
+        if "last_step" not in state or state["last_step"].shape != (rows,):
+            # Rows with no record (a new optimiser, dense Adam's checkpoint): as if updated last step.
+            state["last_step"] = torch.full((rows,), float(state["step"]), dtype=torch.float32)
+        state["step"] += 1
+        beta1, beta2 = group["betas"]
+        lr = group["lr"]
+        pointers = [channel_rows(t).data_ptr() for t in (parameter, gradient, state["exp_avg"], state["exp_avg_sq"])]
+        return int(self._library.sparse_adam(
+            *pointers, marks.data_ptr(), state["last_step"].data_ptr(), rows, parameter.shape[1],
+            int(state["step"]), float(lr), float(beta1), float(beta2), float(group["eps"]), 1))
