@@ -278,6 +278,7 @@ int vm_backward(const Component *components, int32_t count, const float *x, int6
  * cleared, so the buffers are ready for the next step without a pass over the whole grid.
  * `step` counts from 1; bias correction uses it, as dense Adam's does. */
 #define DECAY_TABLE 256
+#define ROWS_AHEAD 8
 
 typedef struct {
     float *param, *grad, *exp_avg, *exp_avg_sq;
@@ -296,8 +297,22 @@ static void *adam_work(void *arg) {
     const float correction2_root = sqrtf(1.0f - powf(w->beta2, (float)w->step));
     const float step_size = w->lr / correction1;
     int64_t updated = 0;
+    /* The touched rows lie scattered: the next ROWS_AHEAD of them are asked of memory while
+     * this one is updated (a touched row's four arrays missed the cache otherwise). */
+    int64_t ahead = w->begin, pending = 0;
     for (int64_t r = w->begin; r < w->end; ++r) {
+        for (; ahead < w->end && pending < ROWS_AHEAD; ++ahead)
+            if (w->touched[ahead]) {
+                ++pending;
+                for (int64_t k = 0; k < w->width; k += 16) {
+                    __builtin_prefetch(w->param + ahead * w->width + k, 1, 3);
+                    __builtin_prefetch(w->grad + ahead * w->width + k, 1, 3);
+                    __builtin_prefetch(w->exp_avg + ahead * w->width + k, 1, 3);
+                    __builtin_prefetch(w->exp_avg_sq + ahead * w->width + k, 1, 3);
+                }
+            }
         if (!w->touched[r]) continue;
+        --pending;
         w->touched[r] = 0;
         ++updated;
         int64_t skipped = w->step - (int64_t)w->last[r] - 1;
