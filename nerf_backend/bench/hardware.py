@@ -11,6 +11,9 @@ import torch
 from ..core.devices import synchronise
 
 
+LINE_FLOATS = 16  # float32 values in a 64-byte cache line
+
+
 def _best_seconds(work, repeats: int) -> float:
     work()  # warm-up: allocation and first-touch costs are not the machine's rate
     best = float("inf")
@@ -22,15 +25,14 @@ def _best_seconds(work, repeats: int) -> float:
 
 
 def measure_hardware(device: torch.device, repeats: int = 3, table_bytes: int = 64 * 2**20) -> dict:
-    """FLOP rate (a 2048² float32 matrix product), memory bandwidth (a 256 MB copy: read and
-    write counted) and the rate of random single-float gathers from a table of
-    ``table_bytes`` (what a grid look-up does per channel: give the field's size, since a
-    table that fits in cache gathers faster), each the best of ``repeats``.
+    """FLOP rate (a 2048² float32 matrix product), copy bandwidth (read and write counted), the rate of random single-float gathers and of random 64-byte cache lines
+    (a grid row's read: 16 floats) from a table of ``table_bytes`` (give the field's size,
+    since a table that fits in cache gathers faster), each the best of ``repeats``.
 
     Example:
         >>> rates = measure_hardware(torch.device("cpu"), repeats=1)
         >>> sorted(rates), rates["gflops"] > 0
-        (['bandwidth_gb_s', 'gathers_m_s', 'gflops'], True)
+        (['bandwidth_gb_s', 'gathers_m_s', 'gflops', 'lines_m_s'], True)
     """
     def synchronised(work):
         def run():
@@ -41,11 +43,20 @@ def measure_hardware(device: torch.device, repeats: int = 3, table_bytes: int = 
     a = torch.randn(2048, 2048, device=device)
     b = torch.randn(2048, 2048, device=device)
     matmul = _best_seconds(synchronised(lambda: a @ b), repeats)
-    source = torch.empty(64 * 2**20, device=device)  # 256 MB of float32
-    target = torch.empty_like(source)
-    copy = _best_seconds(synchronised(lambda: target.copy_(source)), repeats)
+    # The copy rate of 256 MB and of a table of the field's size, the faster of the two: work on a
+    # working set that fits in a cache moves faster than memory does, and the reference must
+    # stay a lower bound.
+    bandwidths = []
+    for floats in (64 * 2**20, max(table_bytes // 4, 2**18)):
+        source = torch.empty(floats, device=device)
+        target = torch.empty_like(source)
+        copy = _best_seconds(synchronised(lambda: target.copy_(source)), repeats)
+        bandwidths.append(2 * source.numel() * 4 / copy / 1e9)
     table = torch.randn(max(table_bytes // 4, 2**18), device=device)
     index = torch.randint(len(table), (8 * 2**20,), device=device)
     gather = _best_seconds(synchronised(lambda: table.index_select(0, index)), repeats)
-    return {"gflops": 2 * 2048**3 / matmul / 1e9, "bandwidth_gb_s": 2 * source.numel() * 4 / copy / 1e9,
-            "gathers_m_s": index.numel() / gather / 1e6}
+    rows = table[:len(table) // LINE_FLOATS * LINE_FLOATS].view(-1, LINE_FLOATS)  # one cache line a row
+    row_index = torch.randint(len(rows), (2**20,), device=device)
+    lines = _best_seconds(synchronised(lambda: rows.index_select(0, row_index)), repeats)
+    return {"gflops": 2 * 2048**3 / matmul / 1e9, "bandwidth_gb_s": max(bandwidths),
+            "gathers_m_s": index.numel() / gather / 1e6, "lines_m_s": row_index.numel() / lines / 1e6}

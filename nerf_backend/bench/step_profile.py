@@ -3,15 +3,21 @@ rendered at the dataset's size, split by stage (``core.stage_timer``), each stag
 this machine can do (``hardware.measure_hardware``): where the time goes, and how far each
 stage is from its limit.
 
-A stage's reference is the time its work takes at the machine's measured rates: the field's
-gathers at the rate of random gathers from a table of the field's size plus its FLOPs at the
-matrix-product rate (from the field's own ``sample_cost``), the optimiser's 7 float reads and
-writes a parameter (Adam: p, g, m, v in; p, m, v out) and the march's 10 floats a sample (a
-position, a length, a distance and an occupancy written and read) at the copy bandwidth.
-"× reference" is the stage's time over that: far above 1, the stage spends its time on
-something other than its necessary work (many small kernels, temporaries); below 1, its
-gathers are kinder than random ones (samples along a ray share cache lines). Stages without
-such a model have none; their share of the time still says what they cost."""
+A stage's reference is a lower bound on the time its work takes at the machine's measured
+rates, so "× reference" is at least 1 and says how far the stage is from what the machine
+allows. The work is counted three ways, and the reference is the largest of the three times:
+- FLOPs (from the field's own ``sample_cost``: interpolation and networks) at the rate of a
+  large float32 matrix product;
+- bytes moved at the copy bandwidth: the march's 10 floats a sample (a position, a length, a
+  distance and an occupancy written and read), the optimiser's 7 floats a value it updates
+  (Adam: p, g, m, v in; p, m, v out; a row-sparse Adam updates only the rows a step touched);
+- random cache lines gathered, at the measured rate of random 64-byte lines from a table of the
+  field's size: the grid rows the step touched (the row-sparse optimiser counts them), each
+  read once by the field's forward, and read and written again (values and gradients) by the
+  backward. Samples along a ray share rows, so rows, not samples times rows, are the floor.
+A stage the model cannot bound has no reference; its share of the time still says what it costs.
+The profile names the stage with the most time above its reference: where a step can gain most.
+"""
 
 from __future__ import annotations
 
@@ -26,9 +32,8 @@ from ..data.dataset import load_split
 from ..data.run_folder import RunFolder
 from ..evaluation.inference import load_trained_model
 from ..evaluation.render_views import render_image
-from ..fields.base import SampleCost
 from ..training.trainer import TrainOptions, train
-from .hardware import measure_hardware
+from .hardware import LINE_FLOATS, measure_hardware
 
 # Training stages in the order a step runs them (trainer._step and marcher.render_marched).
 TRAINING_STAGES = ("data", "rays", "upkeep", "march", "density pass", "field", "composite", "loss", "backward",
@@ -38,11 +43,26 @@ TRAINING_STAGES = ("data", "rays", "upkeep", "march", "density pass", "field", "
 RENDER_STAGES = ("spans", "march", "density", "colour")
 COMPILED_RENDER_STAGES = ("march", "colour")
 MARCH_BYTES_PER_SAMPLE = 10 * 4
-ADAM_BYTES_PER_PARAMETER = 7 * 4
+ADAM_BYTES_PER_VALUE = 7 * 4
 
 
-def _reference(cost: SampleCost, items: float, hardware: dict) -> float:
-    return items * (cost.gathers / (hardware["gathers_m_s"] * 1e6) + cost.flops / (hardware["gflops"] * 1e9))
+def _reference(hardware: dict, flops: float = 0.0, bytes_moved: float = 0.0, lines: float = 0.0) -> float:
+    """The time the work takes at the best of the machine's measured rates: the largest of its
+    FLOPs', its bytes' and its random cache lines' times (a lower bound on the stage's time)."""
+    return max(flops / (hardware["gflops"] * 1e9), bytes_moved / (hardware["bandwidth_gb_s"] * 1e9),
+               lines / (hardware["lines_m_s"] * 1e6))
+
+
+def farthest_from_limit(rows: list[dict]) -> dict | None:
+    """The stage with the most time above its reference (None if no stage has one).
+
+    Example:
+        >>> farthest_from_limit([{"stage": "a", "seconds": 2.0, "reference_seconds": 1.0},
+        ...                      {"stage": "b", "seconds": 9.0, "reference_seconds": 8.5}])["stage"]
+        'a'
+    """
+    bounded = [row for row in rows if row.get("reference_seconds")]
+    return max(bounded, key=lambda row: row["seconds"] - row["reference_seconds"], default=None)
 
 
 def _rows(seconds: dict, items: dict, references: dict, stages: tuple[str, ...], total: float, per: int) -> list[dict]:
@@ -87,27 +107,25 @@ def profile_marched_step(dataset: Path, preset: str, steps: int, out_dir: Path, 
         render_image(model, test.intrinsics, test.poses[0], ray_bounds)
         render_seconds = time.perf_counter() - start
 
-    def bandwidth_reference(items: float, bytes_each: int) -> float:
-        return items * bytes_each / (hardware["bandwidth_gb_s"] * 1e9)
-
     train_items, render_items = timer.items, render_timer.items
-    field = costs["field"]
+    field_flops, colour_flops = costs["field"].flops, costs["colour"].flops
+    grid_lines = train_items.get("grid values", 0) / LINE_FLOATS  # the rows the step touched
     train_references = {
-        "march": bandwidth_reference(train_items["march"], MARCH_BYTES_PER_SAMPLE),
-        "density pass": _reference(costs["frozen density"], train_items["density pass"], hardware),
-        "field": _reference(field, train_items["field"], hardware),
-        # Backward: every gathered value is scattered back (a read and a write), the FLOPs twice.
-        "backward": _reference(SampleCost(2 * field.gathers, 2 * field.flops), train_items["field"], hardware),
-        "optimiser": bandwidth_reference(train_items["optimiser"], ADAM_BYTES_PER_PARAMETER),
+        "march": _reference(hardware, bytes_moved=train_items["march"] * MARCH_BYTES_PER_SAMPLE),
+        "density pass": _reference(hardware, flops=train_items["density pass"] * costs["density"].flops),
+        "field": _reference(hardware, flops=train_items["field"] * field_flops, lines=grid_lines),
+        # Backward: the forward's FLOPs twice over; the rows read again and their gradients written.
+        "backward": _reference(hardware, flops=2 * train_items["field"] * field_flops, lines=2 * grid_lines),
+        "optimiser": _reference(hardware, bytes_moved=train_items["optimiser"] * ADAM_BYTES_PER_VALUE),
     }
     compiled = "spans" not in render_timer.seconds
     render_stages = COMPILED_RENDER_STAGES if compiled else RENDER_STAGES
     render_references = {
-        "march": bandwidth_reference(render_items["march"], MARCH_BYTES_PER_SAMPLE),
-        "colour": _reference(costs["colour"], render_items["colour"], hardware),
+        "march": _reference(hardware, bytes_moved=render_items["march"] * MARCH_BYTES_PER_SAMPLE),
+        "colour": _reference(hardware, flops=render_items["colour"] * colour_flops),
     }
     if not compiled:
-        render_references["density"] = _reference(costs["frozen density"], render_items["density"], hardware)
+        render_references["density"] = _reference(hardware, flops=render_items["density"] * costs["density"].flops)
     config = RunFolder(run_dir).read_config()
     report = {
         "dataset": str(Path(dataset).resolve()), "preset": preset, "overrides": list(overrides), "seed": seed,
@@ -139,9 +157,9 @@ def profile_markdown(report: dict) -> str:
              f"{report['occupied_fraction']:.1%} of occupancy cells occupied; {report['device']}, "
              f"{machine_words(report['machine'])}.", "",
              f"This machine, measured: {hw['gflops']:.0f} GFLOP/s (float32 matrix product), "
-             f"{hw['bandwidth_gb_s']:.1f} GB/s (copy), {hw['gathers_m_s']:.0f} M random float gathers/s from a "
-             f"table of the field's size. \"× reference\": the stage's time over the time its work takes at those "
-             f"rates (step_profile.py says how).", ""]
+             f"{hw['bandwidth_gb_s']:.1f} GB/s (copy), {hw['lines_m_s']:.0f} M random 64-byte cache lines/s from a "
+             f"table of the field's size. \"× reference\": the stage's time over the least time its work (FLOPs, "
+             f"bytes, cache lines) takes at those rates, so at least 1 (step_profile.py says how).", ""]
     for title, key, unit in (("Training step", "training", "step"), ("Rendered view", "render", "view")):
         part = report[key]
         total = part["seconds_per_step"] if key == "training" else part["seconds"]
@@ -158,5 +176,10 @@ def profile_markdown(report: dict) -> str:
             times = "—" if row["times_reference"] is None else f"{row['times_reference']:.1f}"
             lines.append(f"| {row['stage']} | {row['seconds'] * 1000:.2f} | {row['share']:.0%} | {items} | "
                          f"{reference} | {times} |")
+        farthest = farthest_from_limit(part["stages"])
+        if farthest is not None:
+            lines += ["", f"Farthest from its limit: {farthest['stage']}, "
+                          f"{(farthest['seconds'] - farthest['reference_seconds']) * 1000:.2f} ms above its reference "
+                          f"({farthest['times_reference']:.1f}×)."]
         lines.append("")
     return "\n".join(lines)

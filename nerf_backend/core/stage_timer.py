@@ -63,3 +63,11 @@ def stage(name: str, items: "int | torch.Tensor | Callable[[], int]" = 0) -> Ite
         synchronise(timer.device)
         timer.seconds[name] += time.perf_counter() - start
         timer.items[name] += int(items() if callable(items) else items)
+
+
+def count(name: str, items: "int | Callable[[], int]") -> None:
+    """Add ``items`` to ``name``'s count (no time) while profiling: work a stage did that its
+    own count does not say (the grid rows a training step touched)."""
+    timer = _active
+    if timer is not None:
+        timer.items[name] += int(items() if callable(items) else items)

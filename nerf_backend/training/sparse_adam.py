@@ -62,11 +62,16 @@ class RowGradients:
 class RowSparseAdam(torch.optim.Adam):
     """``torch.optim.Adam`` whose ``grids``' planes and lines, when their gradient came through
     the compiled kernel, are updated row by row (see the module's notes); ``rows_updated``: the
-    rows the last step updated (None where no compiler is found: then every parameter is dense)."""
+    grid rows the last step updated, ``floats_updated`` the values (the touched rows' and the dense
+    parameters'); both None where no compiler is found: then every parameter is dense."""
 
     def __init__(self, params, grids, **adam) -> None:
         super().__init__(params, **adam)
         self.rows_updated: int | None = None
+        # Values the last step updated: the touched rows' and every dense parameter's (what
+        # bench-step counts the optimiser's and the grids' memory traffic by).
+        self.floats_updated: int | None = None
+        self.row_floats_updated: int | None = None  # of those, the grid rows' (the rows the step read)
         self._library = compiled_grid_library()
         self._sparse: dict[int, tuple[RowGradients, int]] = {}
         if self._library is None:
@@ -95,11 +100,14 @@ class RowSparseAdam(torch.optim.Adam):
                     sink.marks[index].zero_()
                 else:
                     sparse.append((group, parameter, sink, index))
+        dense = sum(p.numel() for group in self.param_groups for p in group["params"] if p.grad is not None)
         loss = super().step(closure)  # the dense parameters (those with a .grad)
-        updated = 0
+        rows = floats = 0
         for group, parameter, sink, index in sparse:
-            updated += self._sparse_step(group, parameter, sink.gradients[index], sink.marks[index])
-        self.rows_updated = updated
+            updated = self._sparse_step(group, parameter, sink.gradients[index], sink.marks[index])
+            rows += updated
+            floats += updated * parameter.shape[1]
+        self.rows_updated, self.row_floats_updated, self.floats_updated = rows, floats, floats + dense
         return loss
 
     def _sparse_step(self, group: dict, parameter: Tensor, gradient: Tensor, marks: Tensor) -> int:

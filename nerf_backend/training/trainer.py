@@ -25,7 +25,7 @@ from ..core.devices import autocast_dtype, resolve_device
 from ..core.errors import NerfError, RunError
 from ..core.files import write_png
 from ..core.progress import Progress
-from ..core.stage_timer import stage
+from ..core.stage_timer import count, stage
 from ..data.dataset import DatasetSplit, composite, load_scene_bounds, load_scene_profile, load_split
 from ..data.image_pyramid import ImageLevel, ImagePyramid, level_factor
 from ..data.occupancy_prior import PRIOR_KINDS, OccupancyPrior, load_occupancy_prior
@@ -443,13 +443,18 @@ class _Training:
         def parameters() -> int:  # counted only while profiling
             return sum(p.numel() for p in model.parameters())
 
+        def updated() -> int:  # values the optimiser read and wrote (a row-sparse one: fewer)
+            floats = getattr(self.optimizer, "floats_updated", None)
+            return parameters() if floats is None else floats
+
         with stage("backward", items=parameters):
             self.optimizer.zero_grad(set_to_none=True)
             self.scaler.scale(loss).backward()
-        with stage("optimiser", items=parameters):
+        with stage("optimiser", items=updated):
             self.scaler.step(self.optimizer)
             self.scaler.update()
             model.after_step()
+        count("grid values", lambda: getattr(self.optimizer, "row_floats_updated", None) or 0)
         self.iteration += 1
         self.train_seconds += time.perf_counter() - step_start
         self.progress.step(self.iteration, self.train_seconds)
