@@ -120,3 +120,40 @@ def test_the_grid_fields_training_read_matches_its_separate_reads():
     density_ref = field.density_from_features(field.density_grid._forward_rows(normalised).sum(-1))
     colour_ref = field.colour_from_grid(field.appearance_grid._forward_rows(normalised), directions)
     assert _close(density, density_ref, 1e-4) and _close(colour, colour_ref)
+
+
+def _march_setup(density_scale: float):
+    from nerf_backend.model_components import marcher
+    from nerf_backend.model_components.occupancy import OccupancyGrid
+
+    torch.manual_seed(0)
+    field = GridField(GridFieldConfig(resolution=40, initial_resolution=40, density_shift=0.0,
+                                      density_scale=density_scale), SceneBounds((-1.0, -1.0, -0.5), (1.0, 1.0, 0.5)))
+    grid = OccupancyGrid(field.box_min, field.box_max, field.occupancy_cells())
+    grid.occupied.copy_(torch.rand(grid.cells) > 0.6)
+    rays, steps, step = 500, 120, 0.025
+    origins = torch.randn(rays, 3) * 0.3 + torch.tensor([0.0, -3.0, 0.0])
+    directions = torch.nn.functional.normalize(torch.randn(rays, 3) * 0.2 + torch.tensor([0.0, 1.0, 0.0]), dim=-1)
+    near, far, offset = torch.full((rays,), 1.5), torch.full((rays,), 4.5), torch.rand(rays, 1)
+    edges = marcher.march_edges(near, far, step, offset, 0, steps)
+    deltas = edges[:, 1:] - edges[:, :-1]
+    positions = origins[:, None] + directions[:, None] * marcher.interval_midpoints(edges)[..., None]
+    with torch.no_grad():
+        occupied = marcher.occupied_samples(grid, positions, deltas)
+        expected = marcher.lit_samples(lambda x, d: field.density(x), positions, directions, deltas, occupied)
+    return field, grid, (origins, directions, near, far, offset), step, steps, occupied, expected
+
+
+@pytest.mark.parametrize("density_scale", [1.0, 300.0])
+def test_the_compiled_training_march_finds_the_lit_samples_pytorchs_march_finds(density_scale):
+    """marcher.occupied_samples + lit_samples against kernels/vm_grid.c's march_train: the same
+    flat sample indices, in the same order (a faint field: every occupied sample is lit; a dense
+    one: rays stop at their first surface)."""
+    from nerf_backend.model_components.compiled_march import compiled_lit_samples
+
+    field, grid, rays, step, steps, occupied, expected = _march_setup(density_scale)
+    with torch.no_grad():
+        found = compiled_lit_samples(grid, step, steps, field.compiled_density())(*rays)
+    assert torch.equal(found, expected)
+    if density_scale > 100:
+        assert len(expected) < 0.2 * len(occupied)  # the early stop is exercised

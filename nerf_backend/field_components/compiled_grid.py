@@ -169,6 +169,17 @@ def _check(status: int) -> None:
         raise RuntimeError(f"vm_grid.c refused the call (status {status})")
 
 
+def density_components(grid) -> tuple[ctypes.Array, list[Tensor]] | None:
+    """The grid's three components as ``vm_grid.c`` reads them (what its training march sums
+    into a density) and the tables they point into (keep them alive while it reads); None where
+    the kernel cannot read this grid."""
+    if grid.channels % CHANNEL_BLOCK or grid.channels > 64 or compiled_grid_library() is None or any(
+            p.dtype != torch.float32 or p.device.type != "cpu" for p in grid.parameters()):
+        return None
+    tables = [_rows_in_place(p) for p in _parameters([grid])]
+    return _components([grid], tables, None, None, None, None), tables
+
+
 def _gradient_sink(grid, parameters):
     """The grid's row-gradient buffers where an optimiser that updates rows gave it some for
     these very parameters (``training/sparse_adam.RowSparseAdam``), else None: dense gradients

@@ -129,6 +129,12 @@ class MarchableField(nn.Module):
         ``density_volume()``'s result."""
         return self.density(x) if directions is None else self.density_along(x, directions)
 
+    def compiled_density(self):
+        """The field's density as the compiled training march reads it
+        (``compiled_march.GridDensity``), or None where it has no such form (then the march runs
+        through PyTorch)."""
+        return None
+
     def volume_activation(self) -> tuple[str, float, float] | None:
         """How ``density_from_volume`` turns the volume's trilinear value into density, as
         ``(activation, scale, shift)`` of ``compiled_march.VolumeDensity``, so the compiled

@@ -16,7 +16,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..core.scene_bounds import SceneBounds, vertices_for
-from ..field_components.compiled_grid import read_grids
+from ..field_components.compiled_grid import density_components, read_grids
+from ..model_components.compiled_march import GridDensity
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
 from ..field_components.grid_growth import grown_resolution
 from .base import MarchableField, SampleCost, cell_corner_max
@@ -129,6 +130,13 @@ class GridField(GridAppearance, MarchableField):
         grid = self.normalise(x).view(1, -1, 1, 1, 3)  # grid_sample's (x, y, z) = (W, H, D)
         summed = F.grid_sample(volume, grid, mode="bilinear", align_corners=True).view(-1)
         return self.density_from_features(summed)
+
+    def compiled_density(self) -> GridDensity | None:
+        """The density grid for the compiled training march (CPU, float32, a C compiler)."""
+        found = density_components(self.density_grid)
+        if found is None:
+            return None
+        return GridDensity(*found, scale=self.config.density_scale, shift=self.config.density_shift)
 
     def volume_activation(self) -> tuple[str, float, float]:
         return "softplus", self.config.density_scale, self.config.density_shift

@@ -30,7 +30,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..core.field_functions import FieldFn, RayColourFn, SampleDensityFn
+from ..core.field_functions import FieldFn, LitSamplesFn, RayColourFn, SampleDensityFn
 from ..core.stage_timer import stage
 from .occupancy import OccupancyGrid
 from .render_output import RenderOutput
@@ -98,10 +98,12 @@ def lit_samples(density_fn: SampleDensityFn, positions: Tensor, directions: Tens
 def render_marched(
     origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, *, density_fn: SampleDensityFn,
     field_fn: FieldFn, occupancy: OccupancyGrid, step: float, steps: int, background: Tensor | float,
-    offset: Tensor | None = None,
+    offset: Tensor | None = None, lit_fn: LitSamplesFn | None = None,
 ) -> RenderOutput:
     """Render rays marched in ``steps`` fixed steps of ``step`` from ``t_near`` (cut at
-    ``t_far``), with gradients through ``field_fn``.
+    ``t_far``), with gradients through ``field_fn``. ``lit_fn``, where given, finds the samples
+    that count in one pass of its own (the compiled march of the grid field on the CPU) instead
+    of the tensors of every step below.
 
     Samples in empty cells are dropped, then those hidden behind opaque ones (found with
     ``density_fn``, without gradients: it may be a cheaper form of the same density); only
@@ -120,16 +122,23 @@ def render_marched(
         t_edges = march_edges(t_near, t_far, step, offset, 0, steps)
         deltas = t_edges[:, 1:] - t_edges[:, :-1]
         t_mid = interval_midpoints(t_edges)
-        positions = origins[:, None, :] + directions[:, None, :] * t_mid[..., None]
-        occupied = occupied_samples(occupancy, positions, deltas)
-    with stage("density pass", items=occupied.numel()):
-        lit = lit_samples(density_fn, positions, directions, deltas, occupied)
+        if lit_fn is not None:
+            lit = lit_fn(origins, directions, t_near, t_far, offset)
+        else:
+            positions = origins[:, None, :] + directions[:, None, :] * t_mid[..., None]
+            occupied = occupied_samples(occupancy, positions, deltas)
+    if lit_fn is None:
+        with stage("density pass", items=occupied.numel()):
+            lit = lit_samples(density_fn, positions, directions, deltas, occupied)
+        lit_positions = positions.view(-1, 3).index_select(0, lit)
+    else:
+        ray = lit // steps
+        lit_positions = origins.index_select(0, ray) + directions.index_select(0, ray) * t_mid.view(-1, 1)[lit]
     with stage("field", items=lit.numel()):
-        density_values, colour_values = field_fn(positions.view(-1, 3).index_select(0, lit),
-                                                 directions.index_select(0, lit // deltas.shape[1]))
+        density_values, colour_values = field_fn(lit_positions, directions.index_select(0, lit // deltas.shape[1]))
     with stage("composite", items=lit.numel()):
         density = density_values.new_zeros(deltas.numel()).index_put((lit,), density_values).view(deltas.shape)
-        rgb = colour_values.new_zeros((deltas.numel(), 3)).index_put((lit,), colour_values).view(positions.shape)
+        rgb = colour_values.new_zeros((deltas.numel(), 3)).index_put((lit,), colour_values).view(*deltas.shape, 3)
         weights, _ = render_weights(density, deltas)
         return RenderOutput(rgb=composite_rgb(weights, rgb, background), depth=expected_depth(weights, t_mid),
                             opacity=weights.sum(dim=-1), weights=weights, t_edges=t_edges)

@@ -18,7 +18,8 @@ from ..data.occupancy_prior import OccupancyPrior
 from ..field_components.grid_encodings import Vertices
 from ..fields.base import MarchableField
 from ..model_components.compiled_march import RENDER_CHUNK as COMPILED_RENDER_CHUNK
-from ..model_components.compiled_march import VolumeDensity, compiled_march_library, render_marched_compiled
+from ..model_components.compiled_march import (VolumeDensity, compiled_lit_samples, compiled_march_library,
+                                               render_marched_compiled)
 from ..model_components.marcher import OPAQUE_TRANSMITTANCE, render_marched, render_marched_stopping_early
 from ..model_components.occupancy import OccupancyGrid
 from ..model_components.render_output import RenderOutput
@@ -235,8 +236,12 @@ class MarchedModel(Model):
                                                 **march)]
             return [render_marched_stopping_early(origins, directions, t_near, t_far,
                                                   ray_colour=self.field.ray_colour(directions), **march)]
-        offset = None
+        offset, lit_fn = None, None
         if self.training:  # one random offset per ray: unbiased, and every step still covered
             offset = torch.rand((origins.shape[0], 1), generator=generator, device=origins.device,
                                 dtype=origins.dtype)
-        return [render_marched(origins, directions, t_near, t_far, field_fn=self.field, offset=offset, **march)]
+            density = self.field.compiled_density() if origins.device.type == "cpu" else None
+            if density is not None:  # the march and its density pass in one compiled pass a ray
+                lit_fn = compiled_lit_samples(self.occupancy, self.step, self.samples_per_ray, density)
+        return [render_marched(origins, directions, t_near, t_far, field_fn=self.field, offset=offset,
+                               lit_fn=lit_fn, **march)]
