@@ -80,7 +80,7 @@ def test_nan_points_read_zero_and_leave_the_others_and_the_gradient_finite():
     finite = torch.ones(200, dtype=torch.bool)
     finite[[3, 7]] = False
     assert _close(compiled[finite], _reference(grids, x[finite]))
-    assert torch.isfinite(compiled).all() and float(compiled[3].abs().max()) == 0.0
+    assert torch.isfinite(compiled).all() and float(compiled[3].detach().abs().max()) == 0.0
     compiled.sum().backward()
     assert all(torch.isfinite(p.grad).all() for g in grids for p in g.parameters())
 
@@ -122,13 +122,22 @@ def test_the_grid_fields_training_read_matches_its_separate_reads():
     assert _close(density, density_ref, 1e-4) and _close(colour, colour_ref)
 
 
-def _march_setup(density_scale: float):
+def _march_setup(density_scale: float, wall: bool = False):
     from nerf_backend.model_components import marcher
     from nerf_backend.model_components.occupancy import OccupancyGrid
 
     torch.manual_seed(0)
     field = GridField(GridFieldConfig(resolution=40, initial_resolution=40, density_shift=0.0,
                                       density_scale=density_scale), SceneBounds((-1.0, -1.0, -0.5), (1.0, 1.0, 0.5)))
+    if wall:  # a faint haze (alpha ~1e-5 a step) for y < 0, then a wall: density a function of y alone
+        with torch.no_grad():
+            density = field.density_grid
+            for parameter in (density.planes[0], density.planes[2], density.lines[0], density.lines[2]):
+                parameter.zero_()
+            density.planes[1].fill_(1.0)
+            y = torch.linspace(-1, 1, density.lines[1].shape[2])
+            summed = torch.where(y < 0, -14.0, 3.0) / density.channels  # the channels sum to -14, 3
+            density.lines[1].copy_(summed.view(1, 1, -1, 1).expand_as(density.lines[1]))
     grid = OccupancyGrid(field.box_min, field.box_max, field.occupancy_cells())
     grid.occupied.copy_(torch.rand(grid.cells) > 0.6)
     rays, steps, step = 500, 120, 0.025
@@ -153,7 +162,43 @@ def test_the_compiled_training_march_finds_the_lit_samples_pytorchs_march_finds(
 
     field, grid, rays, step, steps, occupied, expected = _march_setup(density_scale)
     with torch.no_grad():
-        found = compiled_lit_samples(grid, step, steps, field.compiled_density())(*rays)
+        found, weights = compiled_lit_samples(grid, step, steps, field.compiled_density())(*rays)
     assert torch.equal(found, expected)
+    # Their weights are volume rendering's over the occupied samples' densities (others count 0).
+    from nerf_backend.model_components import marcher
+    from nerf_backend.model_components.volume_rendering import render_weights
+
+    origins, directions, near, far, offset = rays
+    edges = marcher.march_edges(near, far, step, offset, 0, steps)
+    deltas = edges[:, 1:] - edges[:, :-1]
+    positions = origins[:, None] + directions[:, None] * marcher.interval_midpoints(edges)[..., None]
+    with torch.no_grad():
+        density = torch.zeros(deltas.numel())
+        density[occupied] = field.density(positions.view(-1, 3)[occupied])
+        reference, _ = render_weights(density.view(deltas.shape), deltas)
+    assert float((weights - reference.view(-1)[found]).abs().max()) < 1e-5
     if density_scale > 100:
         assert len(expected) < 0.2 * len(occupied)  # the early stop is exercised
+
+
+def test_training_colours_the_weighty_samples_and_gives_the_rest_their_rays_mean():
+    """marcher.render_marched with the compiled march: the image is the one every lit sample
+    coloured gives, within the weight left to the mean colour (under 1e-3 a ray here), and the
+    density still gets gradients from every lit sample."""
+    from nerf_backend.model_components import marcher
+    from nerf_backend.model_components.compiled_march import compiled_lit_samples
+
+    field, grid, rays, step, steps, _, _ = _march_setup(300.0, wall=True)
+    lit_fn = compiled_lit_samples(grid, step, steps, field.compiled_density())
+    common = dict(density_fn=lambda x, d: field.density(x), occupancy=grid, step=step, steps=steps, background=1.0,
+                  offset=rays[4])
+    every = marcher.render_marched(*rays[:4], field_fn=lambda x, d, c=None: GridField.forward(field, x, d), **common)
+    sparse = marcher.render_marched(*rays[:4], field_fn=field, lit_fn=lit_fn, **common)
+    lit, weight = lit_fn(*rays)
+    assert len(marcher.colour_worthy(weight, lit // steps, 500)) < 0.8 * len(lit)  # the haze takes the mean
+    assert float((sparse.rgb - every.rgb).abs().max()) < 2e-3
+    assert torch.allclose(sparse.opacity, every.opacity, atol=1e-5)
+    sparse.rgb.sum().backward()
+    line_gradient = field.density_grid.lines[1].grad[0, :, :, 0]  # [C, Ny]
+    haze = torch.linspace(-1, 1, line_gradient.shape[1]) < -0.1
+    assert float(line_gradient[:, haze].abs().max()) > 0  # the uncoloured haze's density still learns

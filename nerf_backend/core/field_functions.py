@@ -27,7 +27,11 @@ SeenColourFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
 # the rays the function was made for (``MarchableField.ray_colour(directions)``), so work that
 # is the same for every sample of a ray is done once a ray.
 RayColourFn = Callable[[Tensor, Tensor], Tensor]
-# lit(origins [R, 3], directions [R, 3], t_near [R], t_far [R], offset [R, 1]) -> [L] flat indices
+# lit(origins [R, 3], directions [R, 3], t_near [R], t_far [R], offset [R, 1]) -> (flat indices [L]
 # (ray · steps + step) of a training march's samples in occupied cells that light still reaches,
-# sorted by ray, then along it: a march that finds them in one compiled pass (the grid field's).
-LitSamplesFn = Callable[[Tensor, Tensor, Tensor, Tensor, Tensor], Tensor]
+# sorted by ray, then along it; their weights [L] without gradients): a march that finds them in
+# one compiled pass (the grid field's).
+LitSamplesFn = Callable[[Tensor, Tensor, Tensor, Tensor, Tensor], tuple[Tensor, Tensor]]
+# field(points [P, 3], directions [P, 3], coloured [C]) -> (density [P], colour [C, 3]): a field's
+# density at every point and its colour only at the points ``coloured`` indexes.
+SparseColourFieldFn = Callable[[Tensor, Tensor, Tensor], tuple[Tensor, Tensor]]

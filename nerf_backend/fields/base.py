@@ -93,10 +93,13 @@ class MarchableField(nn.Module):
         once a ray here."""
         return lambda x, ray: self.colour(x, directions.index_select(0, ray))
 
-    def forward(self, x: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+    def forward(self, x: Tensor, directions: Tensor, coloured: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Density and colour of the same points in one call (a field that shares work
-        between them overrides this)."""
-        return self.density_along(x, directions), self.colour(x, directions)
+        between them overrides this); with ``coloured`` (indices into the points), colour only
+        there (``SparseColourFieldFn``)."""
+        if coloured is None:
+            return self.density_along(x, directions), self.colour(x, directions)
+        return self.density_along(x, directions), self.colour(x[coloured], directions[coloured])
 
     def occupancy_cells(self) -> tuple[int, int, int]:
         """Cells per axis of the occupancy grid over the box (the march's step follows them)."""

@@ -98,16 +98,22 @@ class GridField(GridAppearance, MarchableField):
     def density(self, x: Tensor) -> Tensor:
         return self.density_from_features(self.density_grid(self.normalise(x)).sum(dim=-1))
 
-    def forward(self, x: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
-        """Density and colour of the same points, both grids read in one compiled pass where
-        it applies (training on the CPU: ``compiled_grid``), else one after the other."""
-        features = read_grids([self.density_grid, self.appearance_grid], self.normalise(x))
-        if features is None:
-            return super().forward(x, directions)
-        density_features, appearance_features = features.split(
-            [self.density_grid.out_dims, self.appearance_grid.out_dims], dim=1)
-        return (self.density_from_features(density_features.sum(dim=-1)),
-                self.colour_from_grid(appearance_features, directions))
+    def forward(self, x: Tensor, directions: Tensor, coloured: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Density and colour of the same points (colour only at ``coloured``, where given),
+        the grids read by the compiled kernel where it applies (training on the CPU:
+        ``compiled_grid``; both grids in one pass when every point is coloured)."""
+        normalised = self.normalise(x)
+        if coloured is None:
+            features = read_grids([self.density_grid, self.appearance_grid], normalised)
+            if features is None:
+                return super().forward(x, directions)
+            density_features, appearance_features = features.split(
+                [self.density_grid.out_dims, self.appearance_grid.out_dims], dim=1)
+            return (self.density_from_features(density_features.sum(dim=-1)),
+                    self.colour_from_grid(appearance_features, directions))
+        density = self.density_from_features(self.density_grid(normalised).sum(dim=-1))
+        shown = normalised.index_select(0, coloured)
+        return density, self.colour_from_grid(self.appearance_grid(shown), directions.index_select(0, coloured))
 
     def sample_cost(self) -> dict[str, SampleCost]:
         # Each channel of a component reads 4 plane and 2 line values, and interpolating

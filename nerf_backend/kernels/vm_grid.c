@@ -377,7 +377,7 @@ int64_t sparse_adam(float *param, float *grad, float *exp_avg, float *exp_avg_sq
  * from the factorised density grid (softplus of the summed features) and the transmittance in
  * front of each sample. Out: the flat indices (ray * steps + step) of the samples in occupied
  * cells that light still reaches (transmittance in front above opaque_transmittance), sorted by
- * ray, then along it: what marcher.occupied_samples and marcher.lit_samples find through
+ * ray, then along it, and each one's weight (without gradients: which samples need a colour): what marcher.occupied_samples and marcher.lit_samples find through
  * tensors of every step of every ray. The field's pass with gradients then runs on those. */
 typedef struct {
     float step;
@@ -399,6 +399,7 @@ typedef struct {
     const Component *density;   /* the density grid's 3 components */
     int64_t begin, end;         /* rays */
     int64_t *lit;               /* room for (end - begin) * steps indices */
+    float *weight;              /* and their weights (transmittance in front times alpha) */
     int64_t found, occupied_count;
 } TrainMarchWork;
 
@@ -460,8 +461,10 @@ static void *train_march_work(void *arg) {
             ++occupied_count;
             const float v = density_at(w->density, x) + s->density_shift;
             const float sigma = s->density_scale * (v > 20.0f ? v : log1pf(expf(v)));
+            const float through = expf(-sigma * delta);
+            w->weight[found] = transmittance * (1.0f - through);
             w->lit[found++] = r * s->steps + i;
-            transmittance *= expf(-sigma * delta);
+            transmittance *= through;
             if (!(transmittance > s->opaque_transmittance)) break;  /* nothing behind is lit */
         }
     }
@@ -474,7 +477,8 @@ static void *train_march_work(void *arg) {
  * -1 for components it cannot read; `occupied_count` receives the density reads made. */
 int64_t march_train(const TrainMarch *s, const float *origins, const float *directions, const float *t_near,
                     const float *t_far, const float *offset, int64_t rays, const uint8_t *occupied, const uint8_t *blocks,
-                    const Component *density, int64_t *lit, int64_t *occupied_count, int64_t threads) {
+                    const Component *density, int64_t *lit, float *weight, int64_t *occupied_count,
+                    int64_t threads) {
     for (int i = 0; i < 3; ++i)
         if (density[i].channels < 1 || density[i].channels % BLOCK != 0 || density[i].channels > 64) return -1;
     threads = clamp_threads(threads, (rays + 63) / 64);
@@ -483,7 +487,8 @@ int64_t march_train(const TrainMarch *s, const float *origins, const float *dire
     int started[MAX_THREADS] = {0};
     for (int64_t t = 0; t < threads; ++t) {
         TrainMarchWork w = {s, origins, directions, t_near, t_far, offset, occupied, blocks, density,
-                            rays * t / threads, rays * (t + 1) / threads, lit + (rays * t / threads) * s->steps, 0, 0};
+                            rays * t / threads, rays * (t + 1) / threads, lit + (rays * t / threads) * s->steps,
+                            weight + (rays * t / threads) * s->steps, 0, 0};
         work[t] = w;
     }
     for (int64_t t = 1; t < threads; ++t)
@@ -494,6 +499,7 @@ int64_t march_train(const TrainMarch *s, const float *origins, const float *dire
         if (started[t]) pthread_join(handles[t], NULL);
         else train_march_work(&work[t]);
         memmove(lit + total, work[t].lit, (size_t)work[t].found * sizeof(int64_t));  /* after the ones before */
+        memmove(weight + total, work[t].weight, (size_t)work[t].found * sizeof(float));
         total += work[t].found;
         reads += work[t].occupied_count;
     }

@@ -168,15 +168,15 @@ def render_marched_compiled(
 # a byte a cell (16 MB) left the caches and each step waited on memory (lego at 800×800: 45 ns a
 # step, 20 ms for 1 024 rays on one core).
 TRAIN_BLOCK_SHIFT = 3
-_kept = [torch.empty(0, dtype=torch.int64)]
+_kept = [torch.empty(0, dtype=torch.int64), torch.empty(0)]
 
 
-def _scratch(size: int) -> Tensor:
-    """Room for ``size`` sample indices, kept between steps: a fresh 2 MB each step cost more
-    than the march (the kernel's pages are zeroed on first touch)."""
+def _scratch(size: int) -> tuple[Tensor, Tensor]:
+    """Room for ``size`` sample indices and weights, kept between steps: fresh megabytes each
+    step cost more than the march (the kernel's pages are zeroed on first touch)."""
     if _kept[0].numel() < size:
-        _kept[0] = torch.empty(size, dtype=torch.int64)
-    return _kept[0][:size]
+        _kept[:] = [torch.empty(size, dtype=torch.int64), torch.empty(size)]
+    return _kept[0][:size], _kept[1][:size]
 
 
 class _TrainMarch(ctypes.Structure):
@@ -199,7 +199,7 @@ class GridDensity:
 
 def compiled_lit_samples(occupancy: OccupancyGrid, step: float, steps: int, density: GridDensity):
     """A ``LitSamplesFn`` (core/field_functions.py) for ``render_marched``: the training march's
-    lit samples found by ``kernels/vm_grid.c``'s ``march_train`` in one pass a ray, where
+    lit samples and their weights (without gradients) found by ``kernels/vm_grid.c``'s ``march_train`` in one pass a ray, where
     ``marcher.occupied_samples`` and ``lit_samples`` build tensors of every step of every ray
     (lego at 800×800: 254 steps a ray, 1 in 10 occupied). The same samples, up to float rounding
     at cell borders (tests/test_compiled_grid.py)."""
@@ -217,16 +217,17 @@ def compiled_lit_samples(occupancy: OccupancyGrid, step: float, steps: int, dens
 
     def lit(origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, offset: Tensor) -> Tensor:
         rays = origins.shape[0]
-        found = _scratch(rays * steps)
+        found, weights = _scratch(rays * steps)
         reads = ctypes.c_int64(0)
         inputs = [t.float().contiguous() for t in (origins, directions, t_near, t_far, offset)]
         count = library.march_train(ctypes.byref(settings), *[_pointer(t) for t in inputs], ctypes.c_int64(rays),
-                                    _pointer(occupied), _pointer(blocks), density.components, _pointer(found), ctypes.byref(reads),
+                                    _pointer(occupied), _pointer(blocks), density.components, _pointer(found), _pointer(weights),
+                                    ctypes.byref(reads),
                                     ctypes.c_int64(torch.get_num_threads()))
         if count < 0:
             raise RuntimeError("vm_grid.c's march_train refused the density grid")
         with stage("density pass", items=reads.value):  # done inside the march; its reads counted here
             pass
-        return found[:count].clone()
+        return found[:count].clone(), weights[:count].clone()
 
     return lit

@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 from ..core.field_functions import FieldFn, LitSamplesFn, RayColourFn, SampleDensityFn
-from ..core.stage_timer import stage
+from ..core.stage_timer import count, stage
 from .occupancy import OccupancyGrid
 from .render_output import RenderOutput
 from .samplers import interval_midpoints
@@ -51,6 +51,12 @@ MAX_INFERENCE_SPANS = 32
 # times its colour range (a quarter of an 8-bit level), and a soft surface's many faint
 # samples cost no field evaluation.
 SKIPPED_WEIGHT = 1e-3
+# Training with a compiled march (its weights known before the field's pass) colours only the
+# lit samples weighing at least this (or a hundredth of their ray's heaviest, if less); the rest
+# take their ray's mean colour. On lego at 800×800 after 600 s, 1 in 3 lit samples weighed that
+# much and the rest 3.6e-4 of a ray in all: the colour network's pass and its backward shrink 3x.
+TRAIN_COLOURED_WEIGHT = 1e-4
+TRAIN_RELATIVE_WEIGHT = 1e-2
 
 
 def march_edges(t_near: Tensor, t_far: Tensor, step: float, offset: Tensor, first: int, count: int) -> Tensor:
@@ -127,21 +133,66 @@ def render_marched(
         else:
             positions = origins[:, None, :] + directions[:, None, :] * t_mid[..., None]
             occupied = occupied_samples(occupancy, positions, deltas)
+    coloured = None
     if lit_fn is None:
         with stage("density pass", items=occupied.numel()):
             lit = lit_samples(density_fn, positions, directions, deltas, occupied)
         lit_positions = positions.view(-1, 3).index_select(0, lit)
     else:
+        lit, lit_weight = lit_fn(origins, directions, t_near, t_far, offset)
         ray = lit // steps
         lit_positions = origins.index_select(0, ray) + directions.index_select(0, ray) * t_mid.view(-1, 1)[lit]
+        coloured = colour_worthy(lit_weight, ray, origins.shape[0])
+        count("coloured samples", coloured.numel())
     with stage("field", items=lit.numel()):
-        density_values, colour_values = field_fn(lit_positions, directions.index_select(0, lit // deltas.shape[1]))
+        lit_directions = directions.index_select(0, lit // deltas.shape[1])
+        if coloured is None:
+            density_values, colour_values = field_fn(lit_positions, lit_directions)
+        else:
+            density_values, colour_values = field_fn(lit_positions, lit_directions, coloured)
     with stage("composite", items=lit.numel()):
         density = density_values.new_zeros(deltas.numel()).index_put((lit,), density_values).view(deltas.shape)
-        rgb = colour_values.new_zeros((deltas.numel(), 3)).index_put((lit,), colour_values).view(*deltas.shape, 3)
         weights, _ = render_weights(density, deltas)
+        rgb = _sample_colours(lit, coloured, colour_values, weights).view(*deltas.shape, 3)
         return RenderOutput(rgb=composite_rgb(weights, rgb, background), depth=expected_depth(weights, t_mid),
                             opacity=weights.sum(dim=-1), weights=weights, t_edges=t_edges)
+
+
+def colour_worthy(weight: Tensor, ray: Tensor, rays: int) -> Tensor:
+    """Which of a training march's lit samples (their weights without gradients, ``weight [L]``,
+    of rays ``ray [L]``) get a colour: those weighing at least ``TRAIN_COLOURED_WEIGHT``, or, on
+    a ray whose heaviest sample weighs less than 100 times that, at least a hundredth of it (a
+    young field's faint rays colour nearly all their samples, never none). Indices into ``weight``.
+
+    Example:
+        >>> colour_worthy(torch.tensor([0.5, 1e-6, 0.3, 2e-7, 1e-6]), torch.tensor([0, 0, 0, 1, 1]), 2).tolist()
+        [0, 2, 3, 4]
+    """
+    heaviest = weight.new_zeros(rays).scatter_reduce(0, ray, weight, "amax", include_self=False)
+    threshold = torch.clamp(heaviest.index_select(0, ray) * TRAIN_RELATIVE_WEIGHT, max=TRAIN_COLOURED_WEIGHT)
+    return (weight >= threshold).nonzero().squeeze(1)
+
+
+def _sample_colours(lit: Tensor, coloured: Tensor | None, colours: Tensor, weights: Tensor) -> Tensor:
+    """Every march step's colour ``[R·S, 3]``: the field's at the lit samples it coloured (all
+    lit ones when ``coloured`` is None), the weighted mean of its ray's coloured samples
+    (without gradients) at the lit ones it did not, zero elsewhere (no weight)."""
+    flat = colours.new_zeros((weights.numel(), 3))
+    if coloured is None:
+        return flat.index_put((lit,), colours)
+    rays, steps = weights.shape
+    shown = lit.index_select(0, coloured)
+    flat = flat.index_put((shown,), colours)
+    mask = torch.ones_like(lit, dtype=torch.bool).index_fill_(0, coloured, False)
+    if not bool(mask.any()):
+        return flat
+    with torch.no_grad():
+        weight = weights.reshape(-1).index_select(0, shown)
+        shown_ray = shown // steps
+        total = weight.new_zeros((rays, 3)).index_add_(0, shown_ray, weight[:, None] * colours.float())
+        mean = total / weight.new_zeros(rays).index_add_(0, shown_ray, weight).clamp_min(1e-30)[:, None]
+        left = lit[mask]
+    return flat.index_put((left,), mean.index_select(0, left // steps).to(flat.dtype))
 
 
 def occupied_spans(occupancy: OccupancyGrid, origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor,
