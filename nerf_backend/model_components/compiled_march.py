@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from ..core.field_functions import RayColourFn
-from ..core.stage_timer import stage
+from ..core.stage_timer import count, stage
 from ..kernels.build import load_kernel
 from .marcher import OPAQUE_TRANSMITTANCE, SKIPPED_WEIGHT
 from .occupancy import OccupancyGrid
@@ -149,9 +149,9 @@ def render_marched_compiled(
                 _pointer(sample_position), _pointer(sample_weight), _pointer(written), _pointer(counters))
             kept = written.tolist()
         with stage("colour", items=sum(kept)):
-            for thread, count in enumerate(kept):
-                for first in range(thread * region, thread * region + count, COLOUR_BATCH):
-                    part = slice(first, min(first + COLOUR_BATCH, thread * region + count))
+            for thread, kept_count in enumerate(kept):
+                for first in range(thread * region, thread * region + kept_count, COLOUR_BATCH):
+                    part = slice(first, min(first + COLOUR_BATCH, thread * region + kept_count))
                     ray = sample_ray[part]
                     colour = ray_colour(sample_position[part], ray).to(torch.float32)
                     rgb.index_add_(0, ray, sample_weight[part, None] * colour)
@@ -169,6 +169,8 @@ def render_marched_compiled(
 # step, 20 ms for 1 024 rays on one core).
 TRAIN_BLOCK_SHIFT = 3
 _kept = [torch.empty(0, dtype=torch.int64), torch.empty(0)]
+# bench-step's count of the rays the compiled training march marched (its density pass is inside).
+COMPILED_TRAINING_MARCH = "compiled training march"
 
 
 def _scratch(size: int) -> tuple[Tensor, Tensor]:
@@ -220,14 +222,15 @@ def compiled_lit_samples(occupancy: OccupancyGrid, step: float, steps: int, dens
         found, weights = _scratch(rays * steps)
         reads = ctypes.c_int64(0)
         inputs = [t.float().contiguous() for t in (origins, directions, t_near, t_far, offset)]
-        count = library.march_train(ctypes.byref(settings), *[_pointer(t) for t in inputs], ctypes.c_int64(rays),
+        lit_count = library.march_train(ctypes.byref(settings), *[_pointer(t) for t in inputs], ctypes.c_int64(rays),
                                     _pointer(occupied), _pointer(blocks), density.components, _pointer(found), _pointer(weights),
                                     ctypes.byref(reads),
                                     ctypes.c_int64(torch.get_num_threads()))
-        if count < 0:
+        if lit_count < 0:
             raise RuntimeError("vm_grid.c's march_train refused the density grid")
         with stage("density pass", items=reads.value):  # done inside the march; its reads counted here
             pass
-        return found[:count].clone(), weights[:count].clone()
+        count(COMPILED_TRAINING_MARCH, rays)
+        return found[:lit_count].clone(), weights[:lit_count].clone()
 
     return lit
