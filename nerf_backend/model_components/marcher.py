@@ -129,21 +129,19 @@ def render_marched(
         deltas = t_edges[:, 1:] - t_edges[:, :-1]
         t_mid = interval_midpoints(t_edges)
         if lit_fn is not None:
-            lit = lit_fn(origins, directions, t_near, t_far, offset)
+            lit, lit_weight = lit_fn(origins, directions, t_near, t_far, offset)
+            ray = lit // steps
+            lit_positions = origins.index_select(0, ray) + directions.index_select(0, ray) * t_mid.view(-1, 1)[lit]
+            coloured = colour_worthy(lit_weight, ray, origins.shape[0])
+            count("coloured samples", coloured.numel())
         else:
             positions = origins[:, None, :] + directions[:, None, :] * t_mid[..., None]
             occupied = occupied_samples(occupancy, positions, deltas)
-    coloured = None
     if lit_fn is None:
+        coloured = None
         with stage("density pass", items=occupied.numel()):
             lit = lit_samples(density_fn, positions, directions, deltas, occupied)
         lit_positions = positions.view(-1, 3).index_select(0, lit)
-    else:
-        lit, lit_weight = lit_fn(origins, directions, t_near, t_far, offset)
-        ray = lit // steps
-        lit_positions = origins.index_select(0, ray) + directions.index_select(0, ray) * t_mid.view(-1, 1)[lit]
-        coloured = colour_worthy(lit_weight, ray, origins.shape[0])
-        count("coloured samples", coloured.numel())
     with stage("field", items=lit.numel()):
         lit_directions = directions.index_select(0, lit // deltas.shape[1])
         if coloured is None:
