@@ -202,3 +202,18 @@ def test_training_colours_the_weighty_samples_and_gives_the_rest_their_rays_mean
     line_gradient = field.density_grid.lines[1].grad[0, :, :, 0]  # [C, Ny]
     haze = torch.linspace(-1, 1, line_gradient.shape[1]) < -0.1
     assert float(line_gradient[:, haze].abs().max()) > 0  # the uncoloured haze's density still learns
+
+
+def test_without_a_compiler_training_goes_through_pytorch_and_says_so_once(tiny_demo_dataset, tmp_path):
+    """No C compiler: the grid preset trains (through embedding_bag and PyTorch's march and
+    Adam), and one line says why, not one a step."""
+    import os
+
+    from conftest import run_python
+
+    environment = {**os.environ, "CC": str(tmp_path / "no-such-cc"), "NERF_KERNEL_CACHE": str(tmp_path / "cache")}
+    result = run_python("-m", "nerf_backend", "train", str(tiny_demo_dataset), "--out", str(tmp_path / "run"),
+                        "--preset", "fast", "--iters", "20", "--no-progress", env=environment)
+    assert result.stderr.count("training the grids through PyTorch") == 1, result.stderr
+    assert "no-such-cc" in result.stderr
+    assert (tmp_path / "run" / "checkpoint.pt").is_file()

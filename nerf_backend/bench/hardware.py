@@ -25,9 +25,10 @@ def _best_seconds(work, repeats: int) -> float:
 
 
 def measure_hardware(device: torch.device, repeats: int = 3, table_bytes: int = 64 * 2**20) -> dict:
-    """FLOP rate (a 2048² float32 matrix product), copy bandwidth (read and write counted), the rate of random single-float gathers and of random 64-byte cache lines
-    (a grid row's read: 16 floats) from a table of ``table_bytes`` (give the field's size,
-    since a table that fits in cache gathers faster), each the best of ``repeats``.
+    """FLOP rate (a 2048² float32 matrix product), copy bandwidth (read and write counted), and
+    the rates of random single-float gathers and of random 64-byte cache lines (a grid row's
+    read: 16 floats) from a table of ``table_bytes`` (give the field's size, since a table that
+    fits in cache gathers faster), each the best of ``repeats``.
 
     Example:
         >>> rates = measure_hardware(torch.device("cpu"), repeats=1)

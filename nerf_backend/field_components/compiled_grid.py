@@ -26,12 +26,11 @@ Example (where a C compiler is found):
 from __future__ import annotations
 
 import ctypes
-import sys
 
 import torch
 from torch import Tensor
 
-from ..kernels.build import load_kernel
+from ..kernels.build import kernel_or_note
 
 # VectorMatrixGrid's components: (plane axes, line axis), as grid_encodings._MODES.
 _MODES = (((0, 1), 2), ((0, 2), 1), ((1, 2), 0))
@@ -50,23 +49,19 @@ class _Component(ctypes.Structure):
                 ("channels", ctypes.c_int32), ("pad", ctypes.c_int32)]
 
 
-_said = False
 
 
 def compiled_grid_library() -> ctypes.CDLL | None:
     """The built kernel, or None (why is said once on stderr: the grids then train through
     PyTorch, slower)."""
-    library, reason = load_kernel("vm_grid")
+    library, _ = kernel_or_note("vm_grid", "training the grids through PyTorch")
     if library is None:
-        global _said
-        if not _said:
-            print(f"note: training the grids through PyTorch, not the compiled kernel: {reason}", file=sys.stderr)
-            _said = True
         return None
     library.vm_forward.restype = ctypes.c_int
     library.vm_backward.restype = ctypes.c_int
     library.sparse_adam.restype = ctypes.c_int64
-    library.sparse_adam.argtypes = [ctypes.c_void_p] * 6 + [ctypes.c_int64] * 3 + [ctypes.c_float] * 4 + [ctypes.c_int64]
+    library.sparse_adam.argtypes = ([ctypes.c_void_p] * 6 + [ctypes.c_int64] * 3 + [ctypes.c_float] * 4
+                                    + [ctypes.c_int64])
     return library
 
 
@@ -111,8 +106,9 @@ def _components(grids, tables: list[Tensor], features: Tensor | None, grad: Tens
                 entry.row_stride = grad.shape[1]
                 entry.plane_grad, entry.line_grad = grads[2 * index].data_ptr(), grads[2 * index + 1].data_ptr()
                 if touched is not None:
-                    entry.plane_touched = touched[2 * index].data_ptr() if touched[2 * index] is not None else None
-                    entry.line_touched = touched[2 * index + 1].data_ptr() if touched[2 * index + 1] is not None else None
+                    plane_marks, line_marks = touched[2 * index], touched[2 * index + 1]
+                    entry.plane_touched = plane_marks.data_ptr() if plane_marks is not None else None
+                    entry.line_touched = line_marks.data_ptr() if line_marks is not None else None
             column += channels
             index += 1
     return components

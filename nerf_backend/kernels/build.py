@@ -21,6 +21,7 @@ import os
 import platform
 import shutil
 import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -96,3 +97,16 @@ def load_kernel(name: str) -> tuple[ctypes.CDLL | None, str | None]:
         return ctypes.CDLL(str(library)), None
     except OSError as exc:
         return None, f"{library}: cannot be loaded ({exc})"
+
+
+_noted: set[str] = set()
+
+
+def kernel_or_note(name: str, instead: str) -> tuple[ctypes.CDLL | None, str | None]:
+    """``load_kernel(name)``; where it is unavailable, one line on stderr (once per kernel and
+    process) says what runs ``instead`` and why."""
+    library, reason = load_kernel(name)
+    if library is None and name not in _noted:
+        _noted.add(name)
+        print(f"note: {instead}, not the compiled kernel: {reason}", file=sys.stderr)
+    return library, reason

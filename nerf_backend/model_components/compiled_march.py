@@ -30,7 +30,6 @@ Example (where a C compiler is found):
 from __future__ import annotations
 
 import ctypes
-import sys
 from dataclasses import dataclass
 
 import torch
@@ -38,7 +37,7 @@ from torch import Tensor
 
 from ..core.field_functions import RayColourFn
 from ..core.stage_timer import count, stage
-from ..kernels.build import load_kernel
+from ..kernels.build import kernel_or_note, load_kernel
 from .marcher import OPAQUE_TRANSMITTANCE, SKIPPED_WEIGHT
 from .occupancy import OccupancyGrid
 from .render_output import RenderOutput
@@ -83,18 +82,13 @@ class _Settings(ctypes.Structure):
 def compiled_march_library() -> tuple[ctypes.CDLL | None, str | None]:
     """The built kernel and None, or None and why it is unavailable (said once on stderr: the
     PyTorch march then renders, slower)."""
-    library, reason = load_kernel("march_render")
+    library, reason = kernel_or_note("march_render", "rendering through PyTorch's march")
     if library is None:
-        global _said
-        if not _said:
-            print(f"note: rendering through PyTorch's march, not the compiled one: {reason}", file=sys.stderr)
-            _said = True
         return None, reason
     library.march_render.restype = ctypes.c_int64
     return library, None
 
 
-_said = False
 
 
 def _pointer(tensor: Tensor) -> ctypes.c_void_p:
@@ -201,10 +195,10 @@ class GridDensity:
 
 def compiled_lit_samples(occupancy: OccupancyGrid, step: float, steps: int, density: GridDensity):
     """A ``LitSamplesFn`` (core/field_functions.py) for ``render_marched``: the training march's
-    lit samples and their weights (without gradients) found by ``kernels/vm_grid.c``'s ``march_train`` in one pass a ray, where
-    ``marcher.occupied_samples`` and ``lit_samples`` build tensors of every step of every ray
-    (lego at 800×800: 254 steps a ray, 1 in 10 occupied). The same samples, up to float rounding
-    at cell borders (tests/test_compiled_grid.py)."""
+    lit samples and their weights (without gradients) found by ``kernels/vm_grid.c``'s
+    ``march_train`` in one pass a ray, where ``marcher.occupied_samples`` and ``lit_samples``
+    build tensors of every step of every ray (lego at 800×800: 254 steps a ray, 1 in 10
+    occupied). The same samples, up to float rounding at cell borders (tests/test_compiled_grid.py)."""
     library = load_kernel("vm_grid")[0]
     library.march_train.restype = ctypes.c_int64
     settings = _TrainMarch(step=step, steps=steps, cells=(ctypes.c_int64 * 3)(*occupancy.cells),
@@ -223,7 +217,8 @@ def compiled_lit_samples(occupancy: OccupancyGrid, step: float, steps: int, dens
         reads = ctypes.c_int64(0)
         inputs = [t.float().contiguous() for t in (origins, directions, t_near, t_far, offset)]
         lit_count = library.march_train(ctypes.byref(settings), *[_pointer(t) for t in inputs], ctypes.c_int64(rays),
-                                    _pointer(occupied), _pointer(blocks), density.components, _pointer(found), _pointer(weights),
+                                    _pointer(occupied), _pointer(blocks), density.components, _pointer(found),
+                                    _pointer(weights),
                                     ctypes.byref(reads),
                                     ctypes.c_int64(torch.get_num_threads()))
         if lit_count < 0:

@@ -115,7 +115,8 @@ class OccupancyGrid(nn.Module):
             cells = torch.zeros(padded, dtype=torch.bool, device=self.occupied.device)
             cells[:self.cells[0], :self.cells[1], :self.cells[2]] = self.occupied
             count = [n // block for n in padded]
-            self._blocks = cells.view(count[0], block, count[1], block, count[2], block).any(dim=5).any(dim=3).any(dim=1)
+            blocks = cells.view(count[0], block, count[1], block, count[2], block)
+            self._blocks = blocks.any(dim=5).any(dim=3).any(dim=1)
             self._blocks_key = key
         return self._blocks
 
