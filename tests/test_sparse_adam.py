@@ -95,6 +95,14 @@ def test_a_grown_grid_trains_through_autograd_until_a_new_optimiser_attaches():
     grid.resize((11, 9, 7))
     grid(torch.zeros(5, 3)).sum().backward()
     assert all(p.grad is not None for p in grid.parameters())
+    # An optimiser over the grown parameters whose buffers were made for others steps them densely.
+    stale = RowSparseAdam([{"params": list(grid.parameters()), "lr": LR}], grids=[])
+    stale._sparse = {id(p): (grid.row_gradients, i) for i, p in enumerate(
+        [p for pair in zip(grid.planes, grid.lines) for p in pair])}
+    before = [p.detach().clone() for p in grid.parameters()]
+    stale.step()
+    assert all(not torch.equal(a, b) for a, b in zip(before, grid.parameters()))
+    grid.zero_grad(set_to_none=True)
     optimiser = RowSparseAdam([{"params": list(grid.parameters()), "lr": LR}], grids=[grid])
     optimiser.zero_grad(set_to_none=True)
     grid(torch.zeros(5, 3)).sum().backward()

@@ -91,8 +91,8 @@ class RowSparseAdam(torch.optim.Adam):
         for group in self.param_groups:
             for parameter in group["params"]:
                 entry = self._sparse.get(id(parameter))
-                if entry is None:
-                    continue
+                if entry is None or entry[0].pointers[entry[1]] != (parameter.data_ptr(), tuple(parameter.shape)):
+                    continue  # not a grid's, or no longer the parameter the buffers were made for
                 sink, index = entry
                 if parameter.grad is not None:  # read through PyTorch this step: dense, with the rows
                     parameter.grad.add_(sink.gradients[index])
