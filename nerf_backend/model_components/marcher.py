@@ -30,7 +30,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..core.field_functions import FieldFn, LitSamplesFn, RayColourFn, SampleDensityFn
+from ..core.field_functions import FieldFn, LitSamplesFn, RayColourFn, SampleDensityFn, SparseColourFieldFn
 from ..core.stage_timer import count, stage
 from .occupancy import OccupancyGrid
 from .render_output import RenderOutput
@@ -103,7 +103,8 @@ def lit_samples(density_fn: SampleDensityFn, positions: Tensor, directions: Tens
 
 def render_marched(
     origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, *, density_fn: SampleDensityFn,
-    field_fn: FieldFn, occupancy: OccupancyGrid, step: float, steps: int, background: Tensor | float,
+    field_fn: FieldFn | SparseColourFieldFn, occupancy: OccupancyGrid, step: float, steps: int,
+    background: Tensor | float,
     offset: Tensor | None = None, lit_fn: LitSamplesFn | None = None,
 ) -> RenderOutput:
     """Render rays marched in ``steps`` fixed steps of ``step`` from ``t_near`` (cut at
