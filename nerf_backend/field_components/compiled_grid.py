@@ -144,8 +144,8 @@ class _ReadGrids(torch.autograd.Function):
         grads, touched, returned = [], [], []
         for grid, sink, pair in zip(grids, sinks, [parameters[6 * g:6 * g + 6] for g in range(len(grids))]):
             if sink is not None:  # the rows go to the grid's own buffers, for SparseRowAdam
-                grads += sink.buffers()
-                touched += sink.masks()
+                grads += sink.gradients
+                touched += sink.marks
                 returned += [None] * 6
             else:
                 dense = [torch.zeros(p.shape[0], p.shape[2], p.shape[3], p.shape[1]) for p in pair]

@@ -52,12 +52,6 @@ class RowGradients:
         new ones: its gradient then goes through autograd until a new optimiser attaches)."""
         return [(p.data_ptr(), tuple(p.shape)) for p in parameters] == self.pointers
 
-    def buffers(self) -> list[Tensor]:
-        return self.gradients
-
-    def masks(self) -> list[Tensor]:
-        return self.marks
-
 
 class RowSparseAdam(torch.optim.Adam):
     """``torch.optim.Adam`` whose ``grids``' planes and lines, when their gradient came through
