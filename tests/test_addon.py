@@ -54,6 +54,8 @@ def test_the_zip_holds_the_addon_the_backend_and_the_wheel_and_nothing_else(exte
     assert "nerf_backend/training/trainer.py" in names and "nerf_contract/commands.py" in names
     assert "nerf_backend/configs/presets.json" in names  # data files travel with the code
     assert "nerf_backend/requirements.txt" in names and "nerf_backend/requirements-no-deps.txt" in names
+    kernels = {path.relative_to(REPO_ROOT).as_posix() for path in (REPO_ROOT / "nerf_backend" / "kernels").glob("*.c")}
+    assert kernels and kernels <= set(names), sorted(kernels - set(names))  # every compiled kernel's source
     assert not [n for n in names if "__pycache__" in n or n.startswith("tests/") or n.endswith(".pyc")]
     # The manifest's one wheel: what the add-on imports, and nothing else.
     manifest = tomllib.loads(archive.read("blender_manifest.toml").decode())

@@ -139,6 +139,14 @@ def test_without_a_compiler_the_reason_is_given_and_nothing_is_cached(tmp_path, 
     assert not list((tmp_path / "cache").glob("*.so"))
 
 
+def test_a_missing_source_is_a_reason_not_a_crash(tmp_path, monkeypatch):
+    """A partial install (an extension zip that left a kernel out) still trains and renders
+    through PyTorch: the missing file is named, nothing is raised."""
+    monkeypatch.setattr(build, "SOURCES", tmp_path)
+    library, reason = build.load_kernel.__wrapped__("march_render")
+    assert library is None and str(tmp_path / "march_render.c") in reason and "cannot be read" in reason
+
+
 def test_a_kernel_is_built_once_into_the_cache(tmp_path, monkeypatch):
     monkeypatch.setenv(build.CACHE_VARIABLE, str(tmp_path))
     first, reason = build.load_kernel.__wrapped__("march_render")

@@ -36,8 +36,10 @@ BACKEND_PACKAGES = ("nerf_backend", "nerf_contract")  # folders: the backend's P
 WHEEL_PACKAGES = ("datasets_gen", "nerf_contract")  # the wheel: what the add-on imports
 WHEEL_NAME = re.compile(r"\./wheels/(?P<name>[A-Za-z0-9_]+)-(?P<version>[0-9.]+)-py3-none-any\.whl")
 FIXED_TIME = (1980, 1, 1, 0, 0, 0)
-BACKEND_DATA = ("nerf_backend/requirements.txt", "nerf_backend/requirements-no-deps.txt", "nerf_backend/configs/presets.json",
-                "nerf_backend/kernels/march_render.c")
+BACKEND_DATA = ("nerf_backend/requirements.txt", "nerf_backend/requirements-no-deps.txt", "nerf_backend/configs/presets.json")
+# The compiled kernels' C sources, every one: the backend builds them on first use (a kernel left
+# out would only be noticed when training or rendering reached it).
+KERNEL_SOURCES = ("nerf_backend/kernels", "*.c")
 
 
 def _sources(package: str) -> list[Path]:
@@ -51,6 +53,8 @@ def extension_files() -> list[tuple[Path, str]]:
     for package in BACKEND_PACKAGES:
         files += [(path, path.relative_to(REPO).as_posix()) for path in _sources(package)]
     files += [(REPO / name, name) for name in BACKEND_DATA]
+    folder, pattern = KERNEL_SOURCES
+    files += [(path, path.relative_to(REPO).as_posix()) for path in sorted((REPO / folder).glob(pattern))]
     return files
 
 

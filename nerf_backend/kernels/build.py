@@ -71,7 +71,10 @@ def load_kernel(name: str) -> tuple[ctypes.CDLL | None, str | None]:
     compiler = c_compiler()
     if compiler is None:
         return None, "no C compiler (cc, gcc or clang) on the PATH; set CC to use another"
-    text = source.read_bytes()
+    try:
+        text = source.read_bytes()
+    except OSError as exc:  # a partial install: the PyTorch path still runs
+        return None, f"{source}: cannot be read ({exc.strerror or exc})"
     key = hashlib.sha256(b"\0".join([text, compiler.encode(), " ".join(FLAGS + NATIVE_FLAGS).encode(),
                                      platform.machine().encode(), platform.system().encode(),
                                      cpu_identity().encode()])).hexdigest()[:16]
