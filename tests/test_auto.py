@@ -40,6 +40,20 @@ def test_auto_reads_the_scene():
     assert config.grid.resolution == 112
     assert decisions["grid_resolution"]["vertices"] == [112, 112, 29]
     assert "343,000 cells of a 71-vertex cube" in decisions["grid_resolution"]["reason"]
+    # The box narrows to the scene once, at the first growth; cells not finer than a pixel.
+    assert config.fit_box_at == PRESETS["auto"].grid.upsample_iterations[0] == decisions["box_fit"]["value"]
+    assert abs(config.grid.finest_cell - 4 / 138.9) < 1e-4
+
+
+def test_the_box_is_fitted_only_where_it_is_a_guess():
+    """Blender's bounds are the scene's: kept. Without them the box is nerf_synthetic's guess,
+    narrowed once the field shows where the scene is."""
+    bounded = {**PROFILE, "bounds": {"min": list(BOX.box_min), "max": list(BOX.box_max)}}
+    config, decisions = auto_config(PRESETS["auto"], _split(), BOX, bounded)
+    assert config.fit_box_at == 0 and "scene's own bounds" in decisions["box_fit"]["reason"]
+    config, decisions = auto_config(PRESETS["auto"], _split(), BOX, None)
+    assert config.fit_box_at == PRESETS["auto"].grid.upsample_iterations[0]
+    assert "a guess" in decisions["box_fit"]["reason"]
 
 
 def test_auto_without_a_profile_keeps_the_safe_choices():

@@ -109,6 +109,113 @@ def test_resize_keeps_the_represented_volume():
     assert torch.allclose(grid(points), before, atol=1e-12)
 
 
+def test_resizing_to_a_part_of_the_grid_keeps_the_volume_there():
+    """A volume linear per axis survives resampling exactly: the part of it read at the same
+    world points after the part became the whole grid."""
+    grid = VectorMatrixGrid(channels=2, vertices=5).double()
+    with torch.no_grad():
+        axis = torch.linspace(-1, 1, 5, dtype=torch.float64)
+        for plane in grid.planes:
+            plane[:] = (axis[:, None] + 2 * axis[None, :])[None, None]
+        for line in grid.lines:
+            line[:] = (1 + 0.5 * axis)[None, None, :, None]
+    lower, upper = torch.tensor([-0.6, -0.2, 0.1], dtype=torch.float64), torch.tensor([0.5, 0.9, 0.7], dtype=torch.float64)
+    points = lower + torch.rand(60, 3, dtype=torch.float64) * (upper - lower)
+    before = grid(points)
+    grid.resize((13, 12, 8), tuple(lower.tolist()), tuple(upper.tolist()))
+    assert grid.vertices == (13, 12, 8) and grid.planes[1].shape[-2:] == (13, 8) and grid.lines[0].shape[-2] == 8
+    assert torch.allclose(grid((points - lower) / (upper - lower) * 2 - 1), before, atol=1e-12)
+
+
+def _blob_model(config=None) -> GridModel:
+    """A fast model over [-1, 1]³ whose density lies only in x ∈ [0.1, 0.6], y ∈ [-0.5, 0],
+    z ∈ [-0.3, 0.4]: every factor is zero outside that part of its axes, so the 2-unit box is
+    mostly empty, as nerf_synthetic's 3-unit box is around its objects."""
+    torch.manual_seed(5)
+    model = GridModel(config or dataclasses.replace(PRESETS["fast"], fit_box_at=1), BOX)
+    vertices = model.field.vertices
+    inside = [(torch.linspace(-1, 1, n) >= lo) & (torch.linspace(-1, 1, n) <= hi)
+              for n, (lo, hi) in zip(vertices, ((0.1, 0.6), (-0.5, 0.0), (-0.3, 0.4)))]
+    grid = model.field.density_grid
+    with torch.no_grad():
+        for ((a, b), c), plane, line in zip((((0, 1), 2), ((0, 2), 1), ((1, 2), 0)), grid.planes, grid.lines):
+            plane.uniform_(0.5, 1.5).mul_((inside[a][:, None] & inside[b][None, :]).float())
+            line.uniform_(0.5, 1.5).mul_(inside[c][:, None].float())
+        grid.planes[0].mul_(9.0)
+    model.update_occupancy()
+    return model
+
+
+def _rays_at(model_box: SceneBounds, count: int, seed: int) -> tuple[torch.Tensor, ...]:
+    from nerf_backend.core.cameras import ray_box_intersection
+
+    generator = torch.Generator().manual_seed(seed)
+    origins = torch.nn.functional.normalize(torch.randn(count, 3, generator=generator), dim=-1) * 3.0
+    targets = torch.rand(count, 3, generator=generator) * 1.2 + torch.tensor([-0.25, -0.85, -0.55])
+    directions = torch.nn.functional.normalize(targets - origins, dim=-1)
+    near, far, _ = ray_box_intersection(origins, directions, torch.tensor(model_box.box_min),
+                                        torch.tensor(model_box.box_max))
+    return origins, directions, near, far
+
+
+def test_fitting_the_box_narrows_the_field_to_its_density_and_keeps_the_image():
+    model = _blob_model()
+    rays = _rays_at(BOX, 2000, seed=1)
+    with torch.no_grad():
+        before = model.eval()(*rays)[0]
+    cells_before = math.prod(model.field.occupancy_cells())
+    assert model.train().before_step(16, 1) is True and model.box_fitted  # at fit_box_at, once
+    assert model.before_step(32, 2) is False
+    box_min, box_max = model.field.box_min, model.field.box_max
+    # The density's part of the box, two cells wider each side (cells of 2/47).
+    margin = 2 * 2 / 47 + 2 / 47 + 1e-6
+    assert (box_min <= torch.tensor([0.1, -0.5, -0.3])).all() and (box_max >= torch.tensor([0.6, 0.0, 0.4])).all()
+    assert (box_min >= torch.tensor([0.1, -0.5, -0.3]) - margin).all()
+    assert (box_max <= torch.tensor([0.6, 0.0, 0.4]) + margin).all()
+    # The cells keep their count and shrink with the box; the march follows them.
+    assert abs(math.prod(model.field.occupancy_cells()) / cells_before - 1) < 0.1
+    assert model.occupancy.box_max.tolist() == box_max.tolist()
+    with torch.no_grad():
+        after = model.eval()(*rays)[0]
+    assert 0.2 < float(before.opacity.mean()) < 0.9  # rays through the blob and beside it
+    # Resampled finer and marched in finer steps: the same image but where a ray grazes the
+    # blob's sharp edge, which the coarser steps miss (measured: mean 0.0020, 98 % of rays
+    # within 0.0003, the worst ray 0.44).
+    change = (after.rgb - before.rgb).abs().amax(dim=-1)
+    assert float(change.mean()) < 0.005 and float(change.quantile(0.98)) < 0.01
+    assert "box fitted" in model.take_note()
+
+
+def test_the_fitted_bounds_leave_out_floaters_but_keep_every_large_piece():
+    grid = OccupancyGrid(torch.zeros(3), torch.ones(3), cells=40)
+    grid.occupied.zero_()
+    grid.occupied[10:20, 12:30, 5:15] = True  # the scene: 1 800 cells
+    grid.occupied[25:29, 12:16, 20:23] = True  # a second object apart from it: 48 cells
+    specks = torch.randint(0, 40, (200, 3), generator=torch.Generator().manual_seed(0))
+    specks = specks[(specks[:, 2] >= 30)]  # floaters above both, one cell each
+    grid.occupied[specks[:, 0], specks[:, 1], specks[:, 2]] = True
+    everything = grid.occupied_bounds(0)
+    assert everything.box_max[2] == 1.0  # the floaters reach the top
+    bounds = grid.occupied_bounds(0, min_part=0.01)
+    assert [round(v * 40) for v in bounds.box_min] == [10, 12, 5]
+    assert [round(v * 40) for v in bounds.box_max] == [29, 30, 23]
+
+
+def test_a_fitted_box_survives_a_checkpoint_and_a_full_box_is_left_alone():
+    model = _blob_model()
+    model.fit_box()
+    rays = _rays_at(BOX, 500, seed=2)
+    fresh = GridModel(dataclasses.replace(PRESETS["fast"], fit_box_at=1), BOX)
+    fresh.restore(model.state_dict())
+    assert fresh.box_fitted and fresh.field.vertices == model.field.vertices
+    with torch.no_grad():
+        assert torch.equal(fresh.eval()(*rays)[0].rgb, model.eval()(*rays)[0].rgb)
+    assert fresh.train().before_step(16, 1) is False  # fitted already: not again
+    # Density everywhere: the box would keep all of its volume, so it stays.
+    full = GridModel(dataclasses.replace(PRESETS["fast"], fit_box_at=1), BOX)
+    assert full.fit_box() is False and not full.box_fitted
+
+
 FLAT_BOX = SceneBounds((-1.0, -1.0, -0.2), (1.0, 1.0, 0.2))
 
 

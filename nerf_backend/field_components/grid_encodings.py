@@ -119,16 +119,19 @@ class VectorMatrixGrid(nn.Module):
         return torch.cat(outputs, dim=0).T
 
     @torch.no_grad()
-    def resize(self, vertices: Vertices | int) -> None:
-        """Resample every plane and line to ``vertices`` (coarse-to-fine training): the
-        represented volume is unchanged up to interpolation."""
+    def resize(self, vertices: Vertices | int, lower: tuple[float, float, float] = (-1.0, -1.0, -1.0),
+               upper: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> None:
+        """Resample every plane and line to ``vertices`` spread from ``lower`` to ``upper`` (in
+        this grid's [-1, 1] coordinates): the whole grid by default (coarse-to-fine training),
+        or a part of it (the box fitted to the scene), which then becomes [-1, 1]. A factor
+        restricted to a sub-range is still a factor, so the represented volume is unchanged
+        there up to interpolation."""
         n = self.vertices = _as_vertices(vertices)
+        positions = [torch.linspace(lo, hi, count, dtype=torch.float64) for lo, hi, count in zip(lower, upper, n)]
         # New Parameter objects (not .data swaps): autograd keeps each parameter's shape.
         for i, ((a, b), c) in enumerate(_MODES):
-            self.planes[i] = _channel_last(
-                F.interpolate(self.planes[i], size=(n[a], n[b]), mode="bilinear", align_corners=True))
-            self.lines[i] = _channel_last(
-                F.interpolate(self.lines[i], size=(n[c], 1), mode="bilinear", align_corners=True))
+            self.planes[i] = _channel_last(_resampled(self.planes[i], positions[a], positions[b]))
+            self.lines[i] = _channel_last(_resampled(self.lines[i], positions[c], None))
 
     @torch.no_grad()
     def dense_sum(self) -> Tensor:
@@ -162,6 +165,15 @@ def _axis_corners(coordinate: Tensor, vertices: int) -> tuple[Tensor, Tensor, Te
     lower = position.detach().floor().clamp(0, vertices - 2)
     from_lower = position - lower
     return lower.long(), (1.0 - from_lower.abs()).clamp_min(0.0), (1.0 - (from_lower - 1.0).abs()).clamp_min(0.0)
+
+
+def _resampled(factor: Tensor, rows: Tensor, columns: Tensor | None) -> Tensor:
+    """A plane ``[1, C, H, W]`` read bilinearly at ``rows [h] × columns [w]`` (a line ``[1, C, H, 1]``
+    at ``rows`` only), in its [-1, 1] coordinates (``align_corners``: ±1 are its end vertices)."""
+    columns = torch.zeros(1, dtype=rows.dtype) if columns is None else columns
+    where = torch.stack(torch.meshgrid(columns, rows, indexing="xy"), dim=-1)  # [h, w, (column, row)]
+    where = where.to(device=factor.device, dtype=factor.dtype)[None]
+    return F.grid_sample(factor, where, mode="bilinear", align_corners=True)
 
 
 def _channel_last(values: Tensor) -> nn.Parameter:

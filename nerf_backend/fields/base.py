@@ -69,6 +69,21 @@ class MarchableField(nn.Module):
         self.register_buffer("box_min", torch.tensor(box.box_min, dtype=torch.float32))
         self.register_buffer("box_max", torch.tensor(box.box_max, dtype=torch.float32))
         self.extent = tuple(hi - lo for lo, hi in zip(box.box_min, box.box_max))
+        self.built_extent = self.extent  # the box it was built over, before any fitting
+
+    @property
+    def box(self) -> SceneBounds:
+        return SceneBounds(tuple(self.box_min.tolist()), tuple(self.box_max.tolist()))  # type: ignore[arg-type]
+
+    def _set_box(self, box: SceneBounds) -> None:
+        self.box_min.copy_(torch.tensor(box.box_min, dtype=torch.float32))
+        self.box_max.copy_(torch.tensor(box.box_max, dtype=torch.float32))
+        self.extent = tuple(hi - lo for lo, hi in zip(box.box_min, box.box_max))
+
+    def fit_box(self, box: SceneBounds) -> bool:
+        """Narrow the field to ``box`` (inside its own), keeping what it holds there; False
+        where the field cannot (it stays over its whole box)."""
+        return False
 
     def normalise(self, x: Tensor) -> Tensor:
         """World points → [-1, 1] over the box."""

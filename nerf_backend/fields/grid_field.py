@@ -9,13 +9,14 @@ weight), which is where most of the speed of the fast preset comes from.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..core.scene_bounds import SceneBounds, vertices_for
+from ..core.scene_bounds import SceneBounds
 from ..field_components.compiled_grid import density_components, read_grids
 from ..model_components.compiled_march import GridDensity
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
@@ -27,7 +28,7 @@ from .grid_appearance import GridAppearance
 @dataclass(frozen=True)
 class GridFieldConfig:
     # Grid vertices along the box's longest side at the end of training; the other sides get
-    # as many as keep the cells cubic (vertices_for), or as many as the longest side when
+    # as many as keep the cells cubic (vertices_at), or as many as the longest side when
     # cubic_cells is off (every axis alike, as before per-axis counts).
     resolution: int = 128
     cubic_cells: bool = True
@@ -39,6 +40,10 @@ class GridFieldConfig:
     # this many steps at its rate so far: a finer grid needs steps to fill in, and with fewer the
     # grid stays one growth coarser (auto's rule, training/auto.py). 0: it always grows.
     last_growth_min_steps: int = 0
+    # Once the box is fitted to the scene (MarchedModel.fit_box), cells keep the count the
+    # schedule gives over the box the field was built over, so they shrink with the box, but
+    # never below this side (world units; auto: a training pixel's footprint). 0: no floor.
+    finest_cell: float = 0.0
     density_channels: int = 16
     appearance_channels: int = 24
     appearance_dims: int = 27
@@ -66,6 +71,7 @@ class GridField(GridAppearance, MarchableField):
         vertices = self.vertices_at(config.initial_resolution)
         self.density_grid = VectorMatrixGrid(config.density_channels, vertices)
         self.build_appearance(config, vertices)
+        self.grown_to = config.initial_resolution  # the schedule's resolution the grids have now
         self._note: str | None = None
         self._held = False
 
@@ -84,8 +90,28 @@ class GridField(GridAppearance, MarchableField):
         return grown_resolution(config.initial_resolution, config.resolution, config.upsample_iterations, iteration)
 
     def vertices_at(self, resolution: int) -> Vertices:
-        """The vertices on each axis for ``resolution`` along the box's longest side."""
-        return vertices_for(resolution, self.extent) if self.config.cubic_cells else (resolution,) * 3
+        """The vertices on each axis for the schedule's ``resolution``: that many along the
+        longest side of the box the field was built over, with cubic cells; over a fitted box,
+        as many cells as that gives over the built box, as cubes (not below ``finest_cell``)."""
+        if not self.config.cubic_cells:
+            return (resolution,) * 3
+        built_cell = max(self.built_extent) / (resolution - 1)
+        shrink = (math.prod(self.extent) / math.prod(self.built_extent)) ** (1 / 3)
+        cell = max(built_cell * shrink, min(built_cell, self.config.finest_cell))
+        return tuple(max(2, round(side / cell) + 1) for side in self.extent)  # type: ignore[return-value]
+
+    def fit_box(self, box: SceneBounds) -> bool:
+        """Narrow both grids to ``box`` (inside the field's), resampled to the cells
+        ``vertices_at`` gives there: a vector-matrix grid's part is read from its factors' parts."""
+        if not self.config.cubic_cells:
+            return False
+        corners = self.normalise(torch.tensor([box.box_min, box.box_max], dtype=torch.float32,
+                                              device=self.box_min.device)).tolist()
+        self._set_box(box)
+        vertices = self.vertices_at(self.grown_to)
+        for grid in (self.density_grid, self.appearance_grid):
+            grid.resize(vertices, tuple(corners[0]), tuple(corners[1]))
+        return True
 
     def resize(self, vertices: Vertices) -> None:
         self.density_grid.resize(vertices)
@@ -172,7 +198,7 @@ class GridField(GridAppearance, MarchableField):
 
     def coarse_detail(self) -> float | None:
         """The cell's shortest side while the grid is coarser than its final resolution."""
-        if self.resolution >= self.config.resolution:
+        if self.grown_to >= self.config.resolution:
             return None
         return min(side / cells for side, cells in zip(self.extent, self.occupancy_cells()))
 
@@ -180,11 +206,12 @@ class GridField(GridAppearance, MarchableField):
         """Upsample on schedule (coarse-to-fine); the last growth only with
         ``last_growth_min_steps`` left in the budget."""
         resolution = self.resolution_after(scheduled)
-        if resolution == self.resolution:
+        if resolution == self.grown_to:
             return False
         if resolution == self.config.resolution and not self._worth_growing(steps_left):
             return False
         self.resize(self.vertices_at(resolution))
+        self.grown_to = resolution
         return True
 
     def _worth_growing(self, steps_left: float | None) -> bool:
@@ -204,10 +231,19 @@ class GridField(GridAppearance, MarchableField):
         return note
 
     def match_state(self, state: dict[str, Tensor]) -> bool:
-        """Take the vertices a checkpoint was saved with (also cubic grids from before each
-        axis had its own count)."""
+        """Take the box and vertices a checkpoint was saved with (also cubic grids from before
+        each axis had its own count), and the schedule's resolution they stand for."""
+        changed = False
+        box = SceneBounds(tuple(state["box_min"].tolist()), tuple(state["box_max"].tolist()))  # type: ignore[arg-type]
+        if box != self.box:
+            self._set_box(box)
+            changed = True
         (nx, ny), nz = state["density_grid.planes.0"].shape[-2:], state["density_grid.planes.1"].shape[-1]
-        if (nx, ny, nz) == self.vertices:
-            return False
-        self.resize((nx, ny, nz))
-        return True
+        if (nx, ny, nz) != self.vertices:
+            self.resize((nx, ny, nz))
+            changed = True
+        config = self.config
+        stages = {grown_resolution(config.initial_resolution, config.resolution, config.upsample_iterations, at)
+                  for at in (0, *config.upsample_iterations)}
+        self.grown_to = next((r for r in sorted(stages) if self.vertices_at(r) == self.vertices), config.resolution)
+        return changed

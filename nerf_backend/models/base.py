@@ -32,6 +32,7 @@ class ModelSettings(Protocol):
     occupancy_every: int
     occupancy_alpha_threshold: float
     render_alpha_threshold: float
+    fit_box_at: int
 
 
 @dataclass(frozen=True)

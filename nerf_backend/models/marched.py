@@ -12,6 +12,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from ..core.cameras import ray_box_intersection
 from ..core.scene_bounds import SceneBounds
 from ..core.tensor_keys import values_key
 from ..data.occupancy_prior import OccupancyPrior
@@ -33,11 +34,21 @@ class MarchConfig:
     occupancy_every: int = 16
     occupancy_alpha_threshold: float = 1e-4  # cells that cannot reach this alpha in one step are empty
     render_alpha_threshold: float = 1e-2  # the same, for rendering only (TrainConfig's)
+    fit_box_at: int = 0  # scheduled step at which the box is fitted to the occupied cells; 0: never
 
     @classmethod
     def from_settings(cls, settings: ModelSettings) -> "MarchConfig":
         return cls(settings.grid_step_ratio, settings.occupancy_warmup, settings.occupancy_every,
-                   settings.occupancy_alpha_threshold, settings.render_alpha_threshold)
+                   settings.occupancy_alpha_threshold, settings.render_alpha_threshold, settings.fit_box_at)
+
+
+# Fitting the box: the bounds of the pieces of occupied cells of at least FIT_MIN_PART of the
+# largest (floaters are small pieces apart from the scene), widened by FIT_MARGIN_CELLS cells
+# (what the occupancy grid marks at the first growth is coarse); done only where that keeps at
+# most FIT_MAX_KEPT of the volume.
+FIT_MIN_PART = 0.01
+FIT_MARGIN_CELLS = 2
+FIT_MAX_KEPT = 0.75
 
 
 class MarchedModel(Model):
@@ -55,6 +66,9 @@ class MarchedModel(Model):
         self.field = field
         self.march = march
         self.prior = prior
+        self._fit_tried = False
+        self.box_fitted = False  # the field narrowed to a box inside the one it was built over
+        self._note: str | None = None
         self._fit_sampling_to_field()
 
     @classmethod
@@ -157,15 +171,43 @@ class MarchedModel(Model):
                 ParameterGroup("networks", networks, "network_learning_rate")]
 
     def before_step(self, iteration: int, scheduled: int, steps_left: float | None = None) -> bool:
-        """The field's schedule (a grid's upsampling), then the occupancy grid's refresh
-        (every ``occupancy_every`` steps taken)."""
-        replaced = self.field.before_step(scheduled, steps_left)
-        if replaced:
+        """Fitting the box once at ``fit_box_at``, the field's schedule (a grid's upsampling),
+        then the occupancy grid's refresh (every ``occupancy_every`` steps taken)."""
+        fit_at = self.march.fit_box_at
+        fitted = (fit_at > 0 and scheduled >= fit_at and iteration >= self.march.occupancy_warmup
+                  and not self._fit_tried and self.fit_box())
+        grown = self.field.before_step(scheduled, steps_left)
+        if grown:
             self._fit_sampling_to_field()
             self.update_occupancy()
         if iteration >= self.march.occupancy_warmup and iteration % self.march.occupancy_every == 0:
             self.update_occupancy()
-        return replaced
+        return fitted or grown
+
+    def fit_box(self) -> bool:
+        """Narrow the field to the box around its occupied cells (TensoRF's shrinking): its
+        cells then shrink with the box, so the same parameters hold finer detail where the
+        scene is. Tried once; True when the field changed."""
+        self._fit_tried = True
+        # The cells rendering keeps (able to reach render_alpha_threshold in a step): the
+        # training grid's also keep the faint haze a young field has everywhere.
+        bounds = self.render_occupancy().occupied_bounds(FIT_MARGIN_CELLS, FIT_MIN_PART)
+        if bounds is None:
+            return False
+        kept = math.prod(hi - lo for lo, hi in zip(bounds.box_min, bounds.box_max)) / math.prod(self.field.extent)
+        if kept > FIT_MAX_KEPT:
+            self._note = (f"box kept: what the field has filled spans {kept:.0%} of its volume "
+                          f"(it is narrowed where that is at most {FIT_MAX_KEPT:.0%})")
+            return False
+        if not self.field.fit_box(bounds):
+            return False
+        self.box_fitted = True
+        self._fit_sampling_to_field()
+        self.update_occupancy()
+        sides = " × ".join(f"{hi - lo:.2f}" for lo, hi in zip(bounds.box_min, bounds.box_max))
+        self._note = (f"box fitted to the occupied cells: {sides} ({kept:.0%} of the volume), "
+                      f"grids {' × '.join(map(str, self.field.vertices))} vertices")
+        return True
 
     def coarse_detail(self) -> float | None:
         return self.field.coarse_detail()
@@ -174,12 +216,16 @@ class MarchedModel(Model):
         self.field.after_step()
 
     def take_note(self) -> str | None:
-        return self.field.take_note()
+        notes = [note for note in (self._note, self.field.take_note()) if note]
+        self._note = None
+        return "; ".join(notes) or None
 
     def match_state(self, state: dict[str, Tensor]) -> None:
         field_state = {key.removeprefix("field."): value for key, value in state.items() if key.startswith("field.")}
         if self.field.match_state(field_state):
             self._fit_sampling_to_field()
+        self.box_fitted = self.field.extent != self.field.built_extent
+        self._fit_tried = self._fit_tried or self.box_fitted
 
     def _density_volume(self) -> Tensor | None:
         """The field's density volume (None if it has none), rebuilt only when the field
@@ -219,10 +265,20 @@ class MarchedModel(Model):
             return self.field.density_along(x, directions)
         return self.field.density_from_volume(self._density_volume(), x, directions)
 
+    def _within_field_box(self, origins: Tensor, directions: Tensor, t_near: Tensor,
+                          t_far: Tensor) -> tuple[Tensor, Tensor]:
+        """``[t_near, t_far]`` narrowed to each ray's stretch inside the field's box (empty,
+        ``t_far == t_near``, for a ray that misses it)."""
+        entry, exit_, _ = ray_box_intersection(origins, directions, self.field.box_min, self.field.box_max)
+        t_near = torch.maximum(t_near, entry)
+        return t_near, torch.maximum(torch.minimum(t_far, exit_), t_near)
+
     def forward(
         self, origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor,
         background: Tensor | float = 1.0, generator: torch.Generator | None = None,
     ) -> list[RenderOutput]:
+        if self.box_fitted:  # the rays' bounds are the scene's; the field now holds less
+            t_near, t_far = self._within_field_box(origins, directions, t_near, t_far)
         march = dict(occupancy=self.occupancy, step=self.step, steps=self.samples_per_ray, background=background,
                      density_fn=self._frozen_density)
         if not self.training and not torch.is_grad_enabled():

@@ -4,7 +4,8 @@ Blender knows the scene, and the dataset carries that knowledge (``scene_profile
 along with the images. Each decision is returned with its reason and recorded in the
 run's ``config.json``:
 
-- bounds: the scene's box (from the profile) limits every ray and the grids;
+- bounds: the scene's box (from the profile) limits every ray and the grids; without it the
+  box is a guess, narrowed at the first growth to what the field has filled (``fit_box_at``);
 - view dependence: no glossy, metallic, specular, transmissive, clearcoat or sheen material
   → colour takes no direction input;
 - detail: the grid needs no vertex finer than the footprint of a pixel on the scene
@@ -29,6 +30,7 @@ import torch
 from ..configs.train_config import TrainConfig
 from ..core.scene_bounds import SceneBounds, vertices_for
 from ..data.dataset import DatasetSplit
+from ..models.marched import FIT_MAX_KEPT
 from .decision import decide
 
 MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
@@ -115,11 +117,23 @@ def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profil
         (f"the dataset holds Blender's geometry voxelised ({PRIOR_KIND}): empty space is skipped from the first step"
          if has_prior else "the dataset has no occupancy prior: empty space is found from the field's own density"))
 
+    known_bounds = profile is not None and profile.get("bounds") is not None
+    if known_bounds:
+        fit_at, reason = 0, "the box is the scene's own bounds (scene_profile.json): it stays"
+    elif not (schedule and base.grid.cubic_cells):
+        fit_at, reason = 0, "the grid does not grow (or has no cubic cells): its box stays"
+    else:
+        fit_at = schedule[0]
+        reason = (f"the box is a guess (no scene bounds in the dataset): at the first growth (scheduled step "
+                  f"{fit_at}) the grids narrow to the box around the pieces of what the field has filled (floaters "
+                  f"left out), if that keeps at most {FIT_MAX_KEPT:.0%} of the volume, with as many cells as before, "
+                  f"so their cells shrink with it (not below the pixel footprint, {footprint:.4f})")
+    fit_box_at = choose("box_fit", "fit_box_at", fit_at, reason)
     grid = dataclasses.replace(base.grid, resolution=resolution, initial_resolution=initial,
                                upsample_iterations=schedule, view_dependent=view_dependent,
-                               last_growth_min_steps=last_growth_min_steps)
+                               last_growth_min_steps=last_growth_min_steps, finest_cell=footprint)
     config = base.with_settings(preset="auto", grid=grid, random_background=random_background,
-                                occupancy_prior=prior)
+                                occupancy_prior=prior, fit_box_at=fit_box_at)
     diagonal = math.sqrt(sum(side ** 2 for side in sides))
     decisions["samples"] = {
         "value": math.ceil(diagonal / (extent / (resolution - 1) * config.grid_step_ratio)) + 1,
