@@ -167,5 +167,9 @@ def test_rays_with_nan_or_infinite_parts_leave_the_others_as_they_were(library):
         alone = model(origins[5:], directions[5:], near[5:], far[5:])[0]
         origins[0], directions[1], near[2], far[3], origins[4] = float("nan"), float("inf"), float("nan"), float("inf"), 1e30
         mixed = model(origins, directions, near, far)[0]
-    assert torch.equal(mixed.rgb[5:], alone.rgb) and torch.equal(mixed.depth[5:], alone.depth)
+    # The march's samples are the same; the colour network's matrix products may round
+    # differently for another batch of samples (measured: one ray 6e-8 apart).
+    assert torch.allclose(mixed.rgb[5:], alone.rgb, rtol=0, atol=1e-6)
+    assert torch.allclose(mixed.depth[5:], alone.depth, rtol=0, atol=1e-5)
+    assert torch.equal(mixed.opacity[5:], alone.opacity)  # density: no matrix products
     assert torch.isfinite(mixed.opacity).all() and bool(((mixed.opacity >= 0) & (mixed.opacity <= 1)).all())
