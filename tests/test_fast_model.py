@@ -216,6 +216,20 @@ def test_a_fitted_box_survives_a_checkpoint_and_a_full_box_is_left_alone():
     assert full.fit_box() is False and not full.box_fitted
 
 
+def test_a_large_grid_refreshes_its_occupancy_less_often():
+    """The refresh reads every vertex: a 255³ grid refreshes every 67 steps, not 16, so that
+    it stays near 5 % of a step; a grid of up to 2 M cells keeps occupancy_every."""
+    model = GridModel(PRESETS["fast"], BOX)
+    assert model.occupancy_refresh_every() == PRESETS["fast"].occupancy_every == 16
+    model.resize((256, 256, 256))
+    assert model.occupancy_refresh_every() == 67
+    refreshed = []
+    model.update_occupancy = lambda: refreshed.append(True)
+    for iteration in range(16, 16 + 134):
+        model.before_step(iteration, 0)
+    assert len(refreshed) == 2
+
+
 FLAT_BOX = SceneBounds((-1.0, -1.0, -0.2), (1.0, 1.0, 0.2))
 
 
