@@ -117,18 +117,7 @@ def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profil
         (f"the dataset holds Blender's geometry voxelised ({PRIOR_KIND}): empty space is skipped from the first step"
          if has_prior else "the dataset has no occupancy prior: empty space is found from the field's own density"))
 
-    known_bounds = profile is not None and profile.get("bounds") is not None
-    if known_bounds:
-        fit_at, reason = 0, "the box is the scene's own bounds (scene_profile.json): it stays"
-    elif not (schedule and base.grid.cubic_cells):
-        fit_at, reason = 0, "the grid does not grow (or has no cubic cells): its box stays"
-    else:
-        fit_at = schedule[0]
-        reason = (f"the box is a guess (no scene bounds in the dataset): at the first growth (scheduled step "
-                  f"{fit_at}) the grids narrow to the box around the pieces of what the field has filled (floaters "
-                  f"left out), if that keeps at most {FIT_MAX_KEPT:.0%} of the volume, with as many cells as before, "
-                  f"so their cells shrink with it (not below the pixel footprint, {footprint:.4f})")
-    fit_box_at = choose("box_fit", "fit_box_at", fit_at, reason)
+    fit_box_at = choose("box_fit", "fit_box_at", *_box_fit(profile, schedule, base.grid.cubic_cells, footprint))
     grid = dataclasses.replace(base.grid, resolution=resolution, initial_resolution=initial,
                                upsample_iterations=schedule, view_dependent=view_dependent,
                                last_growth_min_steps=last_growth_min_steps, finest_cell=footprint)
@@ -140,3 +129,16 @@ def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profil
         "reason": "one march step per grid cell along the box's diagonal; empty cells are skipped",
     }
     return config, decisions
+
+
+def _box_fit(profile: dict | None, schedule: tuple[int, ...], cubic_cells: bool, footprint: float) -> tuple[int, str]:
+    """``fit_box_at`` and why: the first growth where the box is a guess (no Blender bounds)."""
+    if profile is not None and profile.get("bounds") is not None:
+        return 0, "the box is the scene's own bounds (scene_profile.json): it stays"
+    if not (schedule and cubic_cells):
+        return 0, "the grid does not grow (or has no cubic cells): its box stays"
+    return schedule[0], (
+        f"the box is a guess (no scene bounds in the dataset): at the first growth (scheduled step {schedule[0]}) "
+        f"the grids narrow to the box around the pieces of what the field has filled (floaters left out), if that "
+        f"keeps at most {FIT_MAX_KEPT:.0%} of the volume, with as many cells as before, so their cells shrink with "
+        f"it (not below the pixel footprint, {footprint:.4f})")
