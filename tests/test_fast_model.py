@@ -92,16 +92,21 @@ def test_dense_sum_equals_the_interpolated_feature_sum_at_vertices():
     assert torch.allclose(grid(points).sum(dim=-1), volume[index[:, 2], index[:, 1], index[:, 0]], atol=1e-12)
 
 
-def test_resize_keeps_the_represented_volume():
-    torch.manual_seed(2)
+def _linear_grid() -> VectorMatrixGrid:
+    """A grid of 5 vertices a side whose volume is linear per axis: any resampling keeps it."""
     grid = VectorMatrixGrid(channels=2, vertices=5).double()
-    # A volume that is linear per axis survives any resampling exactly.
     with torch.no_grad():
         axis = torch.linspace(-1, 1, 5, dtype=torch.float64)
         for plane in grid.planes:
             plane[:] = (axis[:, None] + 2 * axis[None, :])[None, None]
         for line in grid.lines:
             line[:] = (1 + 0.5 * axis)[None, None, :, None]
+    return grid
+
+
+def test_resize_keeps_the_represented_volume():
+    torch.manual_seed(2)
+    grid = _linear_grid()
     points = torch.rand(50, 3, dtype=torch.float64) * 2 - 1
     before = grid(points)
     grid.resize((11, 9, 7))
@@ -112,13 +117,7 @@ def test_resize_keeps_the_represented_volume():
 def test_resizing_to_a_part_of_the_grid_keeps_the_volume_there():
     """A volume linear per axis survives resampling exactly: the part of it read at the same
     world points after the part became the whole grid."""
-    grid = VectorMatrixGrid(channels=2, vertices=5).double()
-    with torch.no_grad():
-        axis = torch.linspace(-1, 1, 5, dtype=torch.float64)
-        for plane in grid.planes:
-            plane[:] = (axis[:, None] + 2 * axis[None, :])[None, None]
-        for line in grid.lines:
-            line[:] = (1 + 0.5 * axis)[None, None, :, None]
+    grid = _linear_grid()
     lower, upper = torch.tensor([-0.6, -0.2, 0.1], dtype=torch.float64), torch.tensor([0.5, 0.9, 0.7], dtype=torch.float64)
     points = lower + torch.rand(60, 3, dtype=torch.float64) * (upper - lower)
     before = grid(points)
