@@ -1,6 +1,9 @@
-"""Choosing the compute device: CUDA, then Apple's MPS, then the CPU."""
+"""Choosing the compute device: CUDA, then Apple's MPS, then the CPU; and the precision of
+inference's colour network on it."""
 
 from __future__ import annotations
+
+import time
 
 import torch
 
@@ -65,3 +68,39 @@ def machine_words(machine: dict) -> str:
     (a record made before the processor was kept has only its threads)."""
     words = f"torch {machine['torch']} on {machine['threads']} threads"
     return f"{words}, {machine['processor']}" if machine.get("processor") else words
+
+
+# Inference's colour network runs in bfloat16 where that is this much faster than float32
+# (measured once a process): a CPU with AVX512-BF16 or AMX, 3.5x on an AMD EPYC's 2 cores; an
+# AVX2 CPU only emulates it, slower. Its products then round to 8 bits of mantissa: lego's
+# 800×800 test views moved by under 0.01 dB (docs/benchmarks_lego.md).
+BF16_MIN_SPEEDUP = 1.5
+_colour_dtypes: dict[str, torch.dtype] = {}
+
+
+def colour_network_dtype(device: torch.device) -> torch.dtype:
+    """The type inference's colour network computes in on ``device``: bfloat16 on a CPU whose
+    bfloat16 products of the network's shape are measured ``BF16_MIN_SPEEDUP`` times faster
+    than float32's, float32 elsewhere (GPUs included: their colour pass is not what a view
+    waits on)."""
+    if device.type != "cpu":
+        return torch.float32
+    if "cpu" not in _colour_dtypes:
+        seconds = {dtype: _product_seconds(dtype) for dtype in (torch.float32, torch.bfloat16)}
+        faster = seconds[torch.float32] >= BF16_MIN_SPEEDUP * seconds[torch.bfloat16]
+        _colour_dtypes["cpu"] = torch.bfloat16 if faster else torch.float32
+    return _colour_dtypes["cpu"]
+
+
+def _product_seconds(dtype: torch.dtype, rows: int = 8192, width: int = 64, repeats: int = 5) -> float:
+    """The least time of a colour layer's product (``rows × width`` by ``width × width``)."""
+    generator = torch.Generator().manual_seed(0)
+    a = torch.randn(rows, width, generator=generator).to(dtype)
+    b = torch.randn(width, width, generator=generator).to(dtype)
+    a @ b  # the first call sets up the kernel
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        a @ b
+        best = min(best, time.perf_counter() - start)
+    return best

@@ -101,11 +101,12 @@ class MarchableField(nn.Module):
         surface field's NeuS opacity)."""
         return self.density(x)
 
-    def ray_colour(self, directions: Tensor) -> RayColourFn:
+    def ray_colour(self, directions: Tensor, dtype: torch.dtype = torch.float32) -> RayColourFn:
         """``colour`` for samples packed from rays of these ``directions [R, 3]`` (inference's
         marchers): a function of the samples' points ``[P, 3]`` and rays ``[P]`` (indices into
         ``directions``). A field whose colour does work that is the same along a ray does it
-        once a ray here."""
+        once a ray here; one whose colour is a network may run its products in ``dtype``
+        (``devices.colour_network_dtype``)."""
         return lambda x, ray: self.colour(x, directions.index_select(0, ray))
 
     def forward(self, x: Tensor, directions: Tensor, coloured: Tensor | None = None) -> tuple[Tensor, Tensor]:

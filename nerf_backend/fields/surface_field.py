@@ -261,10 +261,10 @@ class SurfaceField(GridAppearance, MarchableField):
             directions = directions - 2 * (directions * normal).sum(dim=-1, keepdim=True) * normal
         return self.colour_with(x, directions, normal if config.normal_input else None)
 
-    def ray_colour(self, directions: Tensor) -> RayColourFn:
+    def ray_colour(self, directions: Tensor, dtype: torch.dtype = torch.float32) -> RayColourFn:
         if self.config.normal_input or self.config.reflected_directions:
             return MarchableField.ray_colour(self, directions)  # the direction depends on each sample's normal
-        return super().ray_colour(directions)
+        return super().ray_colour(directions, dtype)
 
     def surface_function(self) -> Callable[[Tensor], Tensor]:
         """``-signed_distance``: the mesh is the distance's zero level set."""

@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from ..core.cameras import ray_box_intersection
+from ..core.devices import colour_network_dtype
 from ..core.scene_bounds import SceneBounds
 from ..core.tensor_keys import values_key
 from ..data.occupancy_prior import OccupancyPrior
@@ -294,15 +295,14 @@ class MarchedModel(Model):
                      density_fn=self._frozen_density)
         if not self.training and not torch.is_grad_enabled():
             march["occupancy"] = self.render_occupancy()
+            ray_colour = self.field.ray_colour(directions, colour_network_dtype(origins.device))
             compiled = self._compiled_density(origins.device)
             if compiled is not None:
                 density, library = compiled
                 del march["density_fn"]
                 return [render_marched_compiled(origins, directions, t_near, t_far, density=density,
-                                                ray_colour=self.field.ray_colour(directions), library=library,
-                                                **march)]
-            return [render_marched_stopping_early(origins, directions, t_near, t_far,
-                                                  ray_colour=self.field.ray_colour(directions), **march)]
+                                                ray_colour=ray_colour, library=library, **march)]
+            return [render_marched_stopping_early(origins, directions, t_near, t_far, ray_colour=ray_colour, **march)]
         offset, lit_fn = None, None
         if self.training:  # one random offset per ray: unbiased, and every step still covered
             offset = torch.rand((origins.shape[0], 1), generator=generator, device=origins.device,
