@@ -14,6 +14,7 @@ The renders may come from any tool: ``STEM.png`` per ground-truth view is all th
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -67,9 +68,8 @@ def score_renders(split: DatasetSplit, renders_dir: Path, tools: MetricTools) ->
     """Every metric of the registry for ``renders_dir/STEM.png`` against each view of
     ``split``, per view and as means; a metric the ``tools`` cannot compute (LPIPS without
     its weights) is None with the reason beside it."""
-    per_view = []
-    depth_reason = None
-    for index, gt_path in enumerate(split.image_paths):
+    def score_view(index: int) -> tuple[dict, str | None]:
+        gt_path = split.image_paths[index]
         render_path = renders_dir / f"{gt_path.stem}.png"
         rendered = read_rgb(render_path)
         reference = split.rgb_on_white(index).numpy()
@@ -79,14 +79,20 @@ def score_renders(split: DatasetSplit, renders_dir: Path, tools: MetricTools) ->
         view = {"view": gt_path.stem, **score_image(rendered, reference, tools), "depth_mae": None, "depth_pixels": 0}
         truth_depth, render_depth = split.depth_path(index), renders_dir / f"{gt_path.stem}_depth.exr"
         if truth_depth is None:
-            depth_reason = "the dataset has no ground-truth depth (no 'depth_file_path' in its frames)"
-        elif not truth_depth.is_file():
-            depth_reason = f"{truth_depth}: ground-truth depth file not found"
-        elif not render_depth.is_file():
-            depth_reason = f"the renders have no depth ({render_depth.name} not found)"
-        else:
-            view["depth_mae"], view["depth_pixels"] = depth_error(truth_depth, render_depth)
-        per_view.append(view)
+            return view, "the dataset has no ground-truth depth (no 'depth_file_path' in its frames)"
+        if not truth_depth.is_file():
+            return view, f"{truth_depth}: ground-truth depth file not found"
+        if not render_depth.is_file():
+            return view, f"the renders have no depth ({render_depth.name} not found)"
+        view["depth_mae"], view["depth_pixels"] = depth_error(truth_depth, render_depth)
+        return view, None
+
+    # Views scored side by side: decoding PNGs and scikit-image's filters leave the GIL (13 lego
+    # views at 800×800 on 2 cores: 2.2 → 1.2 s).
+    with ThreadPoolExecutor(max_workers=max(1, torch.get_num_threads())) as pool:
+        scored = list(pool.map(score_view, range(len(split.image_paths))))
+    per_view = [view for view, _ in scored]
+    depth_reason = next((reason for _, reason in reversed(scored) if reason is not None), None)
     depth_values = [v["depth_mae"] for v in per_view if v["depth_mae"] is not None]
     depth_mean = float(np.mean(depth_values)) if depth_values else None
     return {

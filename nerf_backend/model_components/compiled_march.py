@@ -46,10 +46,11 @@ ACTIVATIONS = {"softplus": 0, "laplace": 1, "neus": 2}  # march_render.c's ACTIV
 # Packed samples one call of the kernel may write (24 bytes each): bounds the memory of a chunk
 # of rays whatever the field (a haze colours every step of every ray).
 SAMPLES_PER_CALL = 1 << 20
-# Samples the colour field takes at a time. Measured on 2 CPU cores, the 2.0 M coloured samples
-# of a bright object's 800×800 view (B800): 8 192 a batch 0.73-0.88 s, 25 000 0.69-0.75 s,
-# 65 536 0.86-1.42 s, 262 144 1.1-1.3 s (larger batches leave the caches).
-COLOUR_BATCH = 16384
+# Samples the colour field takes at a time. Measured on 2 CPU cores, float32, the 2.0 M coloured
+# samples of a bright object's 800×800 view (B800): 8 192 a batch 0.73-0.88 s, 25 000 0.69-0.75
+# s, 65 536 0.86-1.42 s, 262 144 1.1-1.3 s (larger batches leave the caches); with the network in
+# bfloat16, lego's views: 16 384 0.96-0.98 s a view, 32 768 0.89, 65 536 0.92.
+COLOUR_BATCH = 32768
 # Rays a render pass gives the compiled march (render_image's chunk): its memory is bounded by
 # SAMPLES_PER_CALL rather than by the rays, and a long call lets its threads share the work.
 RENDER_CHUNK = 65536
