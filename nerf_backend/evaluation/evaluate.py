@@ -14,7 +14,7 @@ The renders may come from any tool: ``STEM.png`` per ground-truth view is all th
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -64,33 +64,44 @@ def depth_error(truth_path: Path, render_path: Path) -> tuple[float | None, int]
     return float(np.abs(rendered_distance - truth["Z"][mask]).mean()), count
 
 
-def score_renders(split: DatasetSplit, renders_dir: Path, tools: MetricTools) -> dict:
-    """Every metric of the registry for ``renders_dir/STEM.png`` against each view of
-    ``split``, per view and as means; a metric the ``tools`` cannot compute (LPIPS without
-    its weights) is None with the reason beside it."""
-    def score_view(index: int) -> tuple[dict, str | None]:
-        gt_path = split.image_paths[index]
-        render_path = renders_dir / f"{gt_path.stem}.png"
-        rendered = read_rgb(render_path)
-        reference = split.rgb_on_white(index).numpy()
-        if rendered.shape != reference.shape:
-            raise NerfError(f"{render_path}: size {rendered.shape[1]}×{rendered.shape[0]} differs from "
-                            f"the ground truth's {reference.shape[1]}×{reference.shape[0]}")
-        view = {"view": gt_path.stem, **score_image(rendered, reference, tools), "depth_mae": None, "depth_pixels": 0}
-        truth_depth, render_depth = split.depth_path(index), renders_dir / f"{gt_path.stem}_depth.exr"
-        if truth_depth is None:
-            return view, "the dataset has no ground-truth depth (no 'depth_file_path' in its frames)"
-        if not truth_depth.is_file():
-            return view, f"{truth_depth}: ground-truth depth file not found"
-        if not render_depth.is_file():
-            return view, f"the renders have no depth ({render_depth.name} not found)"
-        view["depth_mae"], view["depth_pixels"] = depth_error(truth_depth, render_depth)
-        return view, None
+def score_view(split: DatasetSplit, renders_dir: Path, tools: MetricTools, index: int) -> tuple[dict, str | None]:
+    """Every metric of the registry for view ``index``'s render ``renders_dir/STEM.png``, and
+    why its depth was not scored (None where it was)."""
+    gt_path = split.image_paths[index]
+    render_path = renders_dir / f"{gt_path.stem}.png"
+    rendered = read_rgb(render_path)
+    reference = split.rgb_on_white(index).numpy()
+    if rendered.shape != reference.shape:
+        raise NerfError(f"{render_path}: size {rendered.shape[1]}×{rendered.shape[0]} differs from "
+                        f"the ground truth's {reference.shape[1]}×{reference.shape[0]}")
+    view = {"view": gt_path.stem, **score_image(rendered, reference, tools), "depth_mae": None, "depth_pixels": 0}
+    truth_depth, render_depth = split.depth_path(index), renders_dir / f"{gt_path.stem}_depth.exr"
+    if truth_depth is None:
+        return view, "the dataset has no ground-truth depth (no 'depth_file_path' in its frames)"
+    if not truth_depth.is_file():
+        return view, f"{truth_depth}: ground-truth depth file not found"
+    if not render_depth.is_file():
+        return view, f"the renders have no depth ({render_depth.name} not found)"
+    view["depth_mae"], view["depth_pixels"] = depth_error(truth_depth, render_depth)
+    return view, None
 
+
+def _scorer() -> ThreadPoolExecutor:
     # Views scored side by side: decoding PNGs and scikit-image's filters leave the GIL (13 lego
     # views at 800×800 on 2 cores: 2.2 → 1.2 s).
-    with ThreadPoolExecutor(max_workers=max(1, torch.get_num_threads())) as pool:
-        scored = list(pool.map(score_view, range(len(split.image_paths))))
+    return ThreadPoolExecutor(max_workers=max(1, torch.get_num_threads()))
+
+
+def score_renders(split: DatasetSplit, renders_dir: Path, tools: MetricTools,
+                  scored: list[tuple[dict, str | None]] | None = None) -> dict:
+    """Every metric of the registry for ``renders_dir/STEM.png`` against each view of
+    ``split``, per view and as means; a metric the ``tools`` cannot compute (LPIPS without
+    its weights) is None with the reason beside it. ``scored``: ``score_view``'s results for
+    every view, where the caller has them already."""
+    if scored is None:
+        with _scorer() as pool:
+            scored = list(pool.map(lambda index: score_view(split, renders_dir, tools, index),
+                                   range(len(split.image_paths))))
     per_view = [view for view, _ in scored]
     depth_reason = next((reason for _, reason in reversed(scored) if reason is not None), None)
     depth_values = [v["depth_mae"] for v in per_view if v["depth_mae"] is not None]
@@ -130,10 +141,18 @@ def evaluate_run(run_path: Path, split: str, device: torch.device, lpips_weights
     them, and write ``RUN/metrics.json``."""
     run = RunFolder(run_path)
     stored = run.read_config()
-    if not renders_are_current(run, split):
-        render_split(run, split, device, chunk=chunk, progress=progress)
+    dataset_split = load_split(stored["dataset"], split)
     tools = metric_tools(lpips_weights, lpips_linear, device)
-    metrics = score_renders(load_split(stored["dataset"], split), run.renders_dir(split), tools)
+    scored = None
+    if not renders_are_current(run, split):
+        # Each view is scored as soon as it is written, beside the next view's render.
+        with _scorer() as pool:
+            pending: list[Future] = []
+            render_split(run, split, device, chunk=chunk, progress=progress, dataset_split=dataset_split,
+                         on_view=lambda index: pending.append(
+                             pool.submit(score_view, dataset_split, run.renders_dir(split), tools, index)))
+            scored = [done.result() for done in pending]
+    metrics = score_renders(dataset_split, run.renders_dir(split), tools, scored)
     metrics.update(dataset=stored["dataset"], renders=str(run.renders_dir(split).resolve()))
     write_json(run.path / METRICS_NAME, metrics)
     return metrics

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+from typing import Callable
 
 import torch
 
@@ -13,7 +14,7 @@ from nerf_contract.run_layout import RENDERS_DIR
 from ..configs.train_config import TrainConfig
 from ..core.files import write_json
 from ..core.progress import Progress
-from ..data.dataset import load_cameras, load_scene_bounds, load_split
+from ..data.dataset import DatasetSplit, load_cameras, load_scene_bounds, load_split
 from ..data.run_folder import RunFolder
 from ..model_components.ray_bounds import RayBounds, choose_ray_bounds
 from ..models.base import Model
@@ -41,15 +42,18 @@ def view_stem(image_path: Path) -> str:
 
 
 def render_split(run: RunFolder, split: str, device: torch.device, chunk: int | None = None,
-                 progress: bool = True, scale: float = 1.0) -> Path:
+                 progress: bool = True, scale: float = 1.0, dataset_split: DatasetSplit | None = None,
+                 on_view: Callable[[int], None] | None = None) -> Path:
     """Render every view of ``split`` with the run's latest checkpoint; returns the folder
     (``RUN/renders/SPLIT``, or ``RUN/renders/SPLIT_xSCALE`` at ``scale`` times the dataset's
-    resolution, so the renders that ``eval`` scores keep their size).
+    resolution, so the renders that ``eval`` scores keep their size). ``dataset_split``: the
+    split, where the caller has read it already; ``on_view(index)``: called once each view's
+    files are written.
 
     The folder's ``renders.json`` records the checkpoint iteration, so stale renders (from
     before the run trained further) are recognised, and the seconds each view took."""
     stored = run.read_config()
-    dataset_split = load_split(stored["dataset"], split)
+    dataset_split = dataset_split if dataset_split is not None else load_split(stored["dataset"], split)
     model, ray_bounds, state = load_trained_model(run, device)
     intrinsics = dataset_split.intrinsics if scale == 1.0 else dataset_split.intrinsics.scaled(scale)
     out_dir = run.renders_dir(split) if scale == 1.0 else run.path / RENDERS_DIR / f"{split}_x{scale:g}"
@@ -57,7 +61,7 @@ def render_split(run: RunFolder, split: str, device: torch.device, chunk: int | 
     bar = Progress(len(stems), f"render {split}", unit="view", enabled=progress)
     start = time.perf_counter()
     render_poses(model, intrinsics, dataset_split.poses, stems, ray_bounds, out_dir,
-                 chunk=chunk, on_view=lambda i: bar.update(1))
+                 chunk=chunk, on_view=lambda i: (bar.update(1), on_view is not None and on_view(i)))
     bar.close()
     write_json(out_dir / RENDERS_RECORD, {
         "split": split, "iteration": state["iteration"], "views": stems, "size": [intrinsics.width, intrinsics.height],
