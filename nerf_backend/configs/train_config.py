@@ -53,6 +53,9 @@ class TrainConfig:
     # "protocol" for datasets without one).
     ray_bounds: str = "protocol"
     rays_per_batch: int = 1024
+    # The share of each batch drawn where the error is (training/error_map.py), after the
+    # precrop; the rest uniformly over every pixel. 0: all uniform.
+    error_sampling: float = 0.0
     # Coarse-to-fine images (data/image_pyramid.py): while the model still holds only coarse
     # detail (a grid before its last upsampling), its rays come from the images downsampled
     # to that detail, by powers of two; the full size once it holds its final detail.

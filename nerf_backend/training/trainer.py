@@ -38,6 +38,7 @@ from ..models.base import Model
 from ..models.registry import build_model, model_class
 from .auto import AVAILABLE_PRIOR, PRIOR_KIND, auto_config, pixel_footprint
 from .collapse_guard import CollapseGuard, Verdict, blank_psnr, recovery_config
+from .error_map import ErrorMap
 from .sparse_adam import RowSparseAdam
 from .surface_opacity import surface_opacity
 from .surface_softness import surface_softness
@@ -331,6 +332,8 @@ class _Training:
                            if self.config.coarse_images and plan.ray_bounds.box is not None else None)
         self.image_factor = 1  # the downsampling of the last step's images
         self.poses = plan.train_split.poses.to(self.device)
+        self.error_map = (ErrorMap(len(plan.train_split.poses), share=self.config.error_sampling)
+                          if self.config.error_sampling > 0 else None)
         self.score: _ViewScore | None = None
         self.collapse: Verdict | None = None
         self.guard = CollapseGuard(val_split, plan.ray_bounds, self.config.collapse_margin_db)
@@ -404,8 +407,11 @@ class _Training:
         precrop = config.precrop_fraction if scheduled < config.precrop_iterations else None
         rays = config.rays_per_batch
         with stage("data", items=rays):
-            width = images.intrinsics.width
-            image_index, pixel_index = sample_ray_batch(images.rgba, rays, self.batch_generator, precrop)
+            width, height = images.intrinsics.width, images.intrinsics.height
+            if self.error_map is not None and precrop is None:
+                image_index, pixel_index = self.error_map.sample(rays, height, width, self.batch_generator)
+            else:
+                image_index, pixel_index = sample_ray_batch(images.rgba, rays, self.batch_generator, precrop)
             image_index, pixel_index = image_index.to(device), pixel_index.to(device)
             pixels_rgba = images.rgba[image_index, pixel_index // width, pixel_index % width]
             if config.random_background:
@@ -433,6 +439,9 @@ class _Training:
         with stage("loss", items=rays):
             errors = [F.mse_loss(output.rgb.float(), target) for output in outputs]
             loss = torch.stack(errors).sum()
+            if self.error_map is not None:
+                ray_errors = (outputs[-1].rgb.detach().float() - target).square().mean(dim=-1)
+                self.error_map.update(image_index, pixel_index, height, width, ray_errors)
             regularisation = model.regularisation(self.sample_generator)
             if regularisation is not None:  # a field's own terms (the surface field's eikonal)
                 loss = loss + regularisation
