@@ -215,6 +215,31 @@ def test_a_fitted_box_survives_a_checkpoint_and_a_full_box_is_left_alone():
     assert full.fit_box() is False and not full.box_fitted
 
 
+def test_a_box_not_narrowed_at_first_is_tried_again_after_the_next_growth():
+    """At ``fit_box_at`` a young field's haze can fill the box (it stays: "box kept"); once the
+    density has gathered into the scene, the next growth of the grid tries again, and then the
+    box narrows. No retry between growths."""
+    model = _blob_model()
+    grid = model.field.density_grid
+    blob = [parameter.detach().clone() for parameter in grid.parameters()]
+    with torch.no_grad():
+        for parameter in grid.parameters():
+            parameter.uniform_(0.5, 1.5)
+        grid.planes[0].mul_(9.0)  # density everywhere
+    model.update_occupancy()
+    assert model.train().before_step(16, 1) is False and not model.box_fitted
+    assert "box kept" in model.take_note()
+    with torch.no_grad():
+        for parameter, kept in zip(grid.parameters(), blob):
+            parameter.copy_(kept)  # the density gathered into the blob
+    model.update_occupancy()
+    assert model.before_step(17, 2) is False and not model.box_fitted  # no growth yet: no retry
+    growth = PRESETS["fast"].grid.upsample_iterations[0]
+    assert model.before_step(18, growth) is True and not model.box_fitted  # the grid grew
+    assert model.before_step(19, growth + 1) is True and model.box_fitted
+    assert "box fitted" in model.take_note()
+
+
 def test_a_large_grid_refreshes_its_occupancy_less_often():
     """The refresh reads every vertex: a 255³ grid refreshes every 67 steps, not 16, so that
     it stays near 5 % of a step; a grid of up to 2 M cells keeps occupancy_every."""

@@ -177,9 +177,11 @@ class MarchedModel(Model):
                 ParameterGroup("networks", networks, "network_learning_rate")]
 
     def before_step(self, iteration: int, scheduled: int, steps_left: float | None = None) -> bool:
-        """Fitting the box once at ``fit_box_at``, the field's schedule (a grid's upsampling),
-        then the occupancy grid's refresh (every ``occupancy_every`` steps taken, or fewer on a
-        large grid: ``occupancy_refresh_every``)."""
+        """Fitting the box at ``fit_box_at`` (tried again after each later growth while the
+        field still fills too much of it: a young field's floaters can span the box at the
+        first), the field's schedule (a grid's upsampling), then the occupancy grid's refresh
+        (every ``occupancy_every`` steps taken, or fewer on a large grid:
+        ``occupancy_refresh_every``)."""
         fit_at = self.march.fit_box_at
         fitted = (fit_at > 0 and scheduled >= fit_at and iteration >= self.march.occupancy_warmup
                   and not self._fit_tried and self.fit_box())
@@ -187,6 +189,7 @@ class MarchedModel(Model):
         if grown:
             self._fit_sampling_to_field()
             self.update_occupancy()
+            self._fit_tried = self.box_fitted  # a box not narrowed yet is tried again at the next step
         if iteration >= self.march.occupancy_warmup and iteration % self.occupancy_refresh_every() == 0:
             self.update_occupancy()
         return fitted or grown
@@ -199,7 +202,8 @@ class MarchedModel(Model):
     def fit_box(self) -> bool:
         """Narrow the field to the box around its occupied cells (TensoRF's shrinking): its
         cells then shrink with the box, so the same parameters hold finer detail where the
-        scene is. Tried once; True when the field changed."""
+        scene is. Tried at ``fit_box_at`` and after each later growth until it narrows; True
+        when the field changed."""
         self._fit_tried = True
         # The cells rendering keeps (able to reach render_alpha_threshold in a step): the
         # training grid's also keep the faint haze a young field has everywhere.
