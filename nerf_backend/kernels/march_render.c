@@ -13,9 +13,7 @@
  * late to share the few milliseconds of a chunk of rays.
  *
  * Layouts (row-major, contiguous): origins/directions [R, 3]; t_near/t_far [R]; skip and
- * occupied [Gx, Gy, ceil(Gz / 8)] bits (bit k % 8 of byte k // 8 along z: occupancy.py's
- * occupied_bits, 2 MB at 255³ cells where bytes took 16 MB and missed the caches);
- * volume [Nz, Ny, Nx] floats (grid_sample's layout:
+ * occupied [Gx, Gy, Gz] bytes (0/1); volume [Nz, Ny, Nx] floats (grid_sample's layout:
  * x fastest), vertices at the box's corners (align_corners).
  */
 
@@ -38,7 +36,6 @@ typedef struct {
     float a, b;             /* softplus: sigma = a * softplus(v + b); laplace, neus: beta = a */
     float opaque_transmittance;
     float skipped_weight;   /* weight a ray may leave uncoloured */
-    int64_t z_bytes;        /* bytes of occupancy bits a (x, y) column: ceil(Gz / 8) */
 } MarchSettings;
 
 /* NaN goes to lo: a float cast to an integer must be in range (anything else is undefined). */
@@ -49,14 +46,6 @@ static inline int64_t cell_index(const float units[3], const int64_t cells[3]) {
     for (int axis = 0; axis < 3; ++axis)  /* clamped to the grid before the cast, NaN to 0 */
         ijk[axis] = (int64_t)clampf(units[axis], 0.0f, (float)(cells[axis] - 1));
     return (ijk[0] * cells[1] + ijk[1]) * cells[2] + ijk[2];
-}
-
-/* The occupancy bit of the cell holding `units` (cells' units, inside the grid). */
-static inline int occupied_at(const MarchSettings *s, const uint8_t *bits, const float units[3]) {
-    int64_t ijk[3];
-    for (int axis = 0; axis < 3; ++axis)
-        ijk[axis] = (int64_t)clampf(units[axis], 0.0f, (float)(s->cells[axis] - 1));
-    return (bits[(ijk[0] * s->cells[1] + ijk[1]) * s->z_bytes + (ijk[2] >> 3)] >> (ijk[2] & 7)) & 1;
 }
 
 static float activate(const MarchSettings *s, float v) {
@@ -173,7 +162,7 @@ static int march_ray(MarchJob *job, MarchThread *thread, int64_t r) {
                 units[axis] = start[axis] + along[axis] * t_mid;
                 inside &= units[axis] >= 0.0f && units[axis] <= (float)s->cells[axis];
             }
-            if (!inside || !occupied_at(s, job->occupied, units)) continue;
+            if (!inside || !job->occupied[cell_index(units, s->cells)]) continue;
             float p[3];
             for (int axis = 0; axis < 3; ++axis) p[axis] = o[axis] + d[axis] * t_mid;
             const float sigma = density_at(s, job->volume, p, d);

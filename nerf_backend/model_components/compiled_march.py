@@ -77,8 +77,7 @@ class _Settings(ctypes.Structure):
                 ("cells", ctypes.c_int64 * 3), ("vertices", ctypes.c_int64 * 3),
                 ("box_min", ctypes.c_float * 3), ("box_max", ctypes.c_float * 3),
                 ("activation", ctypes.c_int32), ("a", ctypes.c_float), ("b", ctypes.c_float),
-                ("opaque_transmittance", ctypes.c_float), ("skipped_weight", ctypes.c_float),
-                ("z_bytes", ctypes.c_int64)]
+                ("opaque_transmittance", ctypes.c_float), ("skipped_weight", ctypes.c_float)]
 
 
 def compiled_march_library() -> tuple[ctypes.CDLL | None, str | None]:
@@ -111,7 +110,7 @@ def render_marched_compiled(
     as_float = {"dtype": torch.float32}
     origins, directions = origins.to(**as_float).contiguous(), directions.to(**as_float).contiguous()
     t_near, t_far = t_near.to(**as_float).contiguous(), t_far.to(**as_float).contiguous()
-    skip, occupied = occupancy.skip_cells().contiguous(), occupancy.occupied_bits().contiguous()
+    skip, occupied = occupancy.skip_cells().contiguous(), occupancy.occupied.contiguous()
     volume = density.volume.to(**as_float).contiguous()
     settings = _Settings(
         step=step, steps=steps, span=occupancy.skip_span_steps(step), cells=(ctypes.c_int64 * 3)(*occupancy.cells),
@@ -119,7 +118,7 @@ def render_marched_compiled(
         box_min=(ctypes.c_float * 3)(*occupancy.box_min.tolist()),
         box_max=(ctypes.c_float * 3)(*occupancy.box_max.tolist()),
         activation=ACTIVATIONS[density.activation], a=density.scale, b=density.shift,
-        opaque_transmittance=OPAQUE_TRANSMITTANCE, skipped_weight=SKIPPED_WEIGHT, z_bytes=occupied.shape[2])
+        opaque_transmittance=OPAQUE_TRANSMITTANCE, skipped_weight=SKIPPED_WEIGHT)
     per_ray = torch.zeros((4, rays), **as_float)  # transmittance, depth, skipped, coloured weight
     done = torch.zeros(rays, dtype=torch.uint8)
     counters = torch.zeros(2, dtype=torch.int64)
