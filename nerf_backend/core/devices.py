@@ -4,6 +4,7 @@ inference's colour network on it."""
 from __future__ import annotations
 
 import time
+from functools import cache
 
 import torch
 
@@ -75,7 +76,6 @@ def machine_words(machine: dict) -> str:
 # AVX2 CPU only emulates it, slower. Its products then round to 8 bits of mantissa: lego's
 # 800×800 test views moved by under 0.01 dB (docs/benchmarks_lego.md).
 BF16_MIN_SPEEDUP = 1.5
-_colour_dtypes: dict[str, torch.dtype] = {}
 
 
 def colour_network_dtype(device: torch.device) -> torch.dtype:
@@ -83,13 +83,13 @@ def colour_network_dtype(device: torch.device) -> torch.dtype:
     bfloat16 products of the network's shape are measured ``BF16_MIN_SPEEDUP`` times faster
     than float32's, float32 elsewhere (GPUs included: their colour pass is not what a view
     waits on)."""
-    if device.type != "cpu":
-        return torch.float32
-    if "cpu" not in _colour_dtypes:
-        seconds = {dtype: _product_seconds(dtype) for dtype in (torch.float32, torch.bfloat16)}
-        faster = seconds[torch.float32] >= BF16_MIN_SPEEDUP * seconds[torch.bfloat16]
-        _colour_dtypes["cpu"] = torch.bfloat16 if faster else torch.float32
-    return _colour_dtypes["cpu"]
+    return _cpu_colour_dtype() if device.type == "cpu" else torch.float32
+
+
+@cache  # measured once a process
+def _cpu_colour_dtype() -> torch.dtype:
+    faster = _product_seconds(torch.float32) >= BF16_MIN_SPEEDUP * _product_seconds(torch.bfloat16)
+    return torch.bfloat16 if faster else torch.float32
 
 
 def _product_seconds(dtype: torch.dtype, rows: int = 8192, width: int = 64, repeats: int = 5) -> float:

@@ -27,6 +27,7 @@ from ..core.errors import NerfError
 from ..core.files import read_exr, write_json, write_png
 from ..data.dataset import DatasetSplit, composite, load_split
 from ..data.run_folder import RunFolder
+from ..metrics.image_metrics import SSIM_SIGMA, SSIM_WINDOW
 from ..metrics.lpips_metric import LpipsUnavailable, load_lpips
 from ..metrics.registry import METRICS, MetricTools, mean_scores, score_image, summary_line, unavailable_reasons
 from .error_images import ERROR_SCALE, error_heatmap
@@ -119,7 +120,8 @@ def score_renders(split: DatasetSplit, renders_dir: Path, tools: MetricTools,
         "depth_unavailable": None if depth_mean is not None else (depth_reason or "no foreground pixels in common"),
         "background": "white: ground-truth RGBA composited as rgb·α + (1 − α); renders as written",
         "images": "8-bit PNGs on both sides, as float RGB in [0, 1]",
-        "ssim_settings": "11×11 Gaussian window, σ = 1.5, RGB in [0, 1] (scikit-image's structural_similarity)",
+        "ssim_settings": (f"{SSIM_WINDOW}×{SSIM_WINDOW} Gaussian window, σ = {SSIM_SIGMA}, RGB in [0, 1] "
+                          "(scikit-image's structural_similarity)"),
         "per_view": per_view,
     }
 

@@ -59,9 +59,15 @@ def render_split(run: RunFolder, split: str, device: torch.device, chunk: int | 
     out_dir = run.renders_dir(split) if scale == 1.0 else run.path / RENDERS_DIR / f"{split}_x{scale:g}"
     stems = [view_stem(p) for p in dataset_split.image_paths]
     bar = Progress(len(stems), f"render {split}", unit="view", enabled=progress)
+
+    def view_done(index: int) -> None:
+        bar.update(1)
+        if on_view is not None:
+            on_view(index)
+
     start = time.perf_counter()
     render_poses(model, intrinsics, dataset_split.poses, stems, ray_bounds, out_dir,
-                 chunk=chunk, on_view=lambda i: (bar.update(1), on_view is not None and on_view(i)))
+                 chunk=chunk, on_view=view_done)
     bar.close()
     write_json(out_dir / RENDERS_RECORD, {
         "split": split, "iteration": state["iteration"], "views": stems, "size": [intrinsics.width, intrinsics.height],
