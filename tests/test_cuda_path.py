@@ -123,3 +123,27 @@ def test_a_training_step_gives_the_cpu_gradients_and_waits_for_the_gpu_a_bounded
     for place in sorted(set(waits)):
         print("  ", waits.count(place), place)
     assert len(waits) <= 12, waits
+
+
+def test_cuda_reads_the_sparse_grid_as_the_cpu_kernel_does():
+    """The Plenoxels grid: PyTorch's gathers on CUDA against the CPU's compiled kernel (or its
+    gathers where no compiler is found), features and gradients, with pruned vertices."""
+    from nerf_backend.field_components.sparse_grid import SparseVoxelGrid
+
+    generator = torch.Generator().manual_seed(6)
+    vertices = (17, 13, 11)
+    keep = torch.rand(vertices, generator=generator) < 0.7
+    points = torch.rand(20_000, 3, generator=generator) * 2.4 - 1.2
+    upstream = torch.randn(20_000, 28, generator=generator)
+    values = torch.randn(int(keep.sum()), 32, generator=generator)
+    results = []
+    for device in ("cpu", CUDA):
+        grid = SparseVoxelGrid(28, vertices, keep).to(device)
+        with torch.no_grad():
+            grid.values.copy_(values.to(device))
+        features = grid(points.to(device))
+        (features * upstream.to(device)).sum().backward()
+        results.append((features.detach().cpu(), grid.values.grad.cpu()))
+    (cpu_features, cpu_grad), (cuda_features, cuda_grad) = results
+    assert torch.allclose(cuda_features, cpu_features, atol=1e-5, rtol=1e-5)
+    assert torch.allclose(cuda_grad, cpu_grad, atol=1e-3, rtol=1e-4)

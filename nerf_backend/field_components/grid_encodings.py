@@ -67,6 +67,11 @@ class VectorMatrixGrid(nn.Module):
     def out_dims(self) -> int:
         return 3 * self.channels
 
+    def sparse_row_parameters(self) -> list[nn.Parameter]:
+        """The parameters whose rows ``SparseRowAdam`` updates one by one, in the compiled
+        kernel's order: plane 0, line 0, plane 1, ..."""
+        return [p for pair in zip(self.planes, self.lines) for p in pair]
+
     def forward(self, x: Tensor) -> Tensor:
         if x.device.type == "cpu":
             compiled = read_grids([self], x)

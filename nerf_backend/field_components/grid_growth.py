@@ -9,6 +9,8 @@ Example:
 
 from __future__ import annotations
 
+import math
+
 
 def grown_resolution(initial: int, final: int, upsample_iterations: tuple[int, ...], iteration: int) -> int:
     """The vertex count once ``iteration`` steps of the schedule have been taken."""
@@ -16,3 +18,20 @@ def grown_resolution(initial: int, final: int, upsample_iterations: tuple[int, .
     if done == 0:
         return initial
     return round(initial * (final / initial) ** (done / len(upsample_iterations)))
+
+
+def cubic_vertices(resolution: int, extent: tuple[float, ...], built_extent: tuple[float, ...],
+                   finest_cell: float = 0.0) -> tuple[int, int, int]:
+    """Vertices on each axis of a grid over ``extent`` with cubic cells, for the schedule's
+    ``resolution`` (vertices along the longest side of the box the grid was built over,
+    ``built_extent``): over a box since narrowed, as many cells as that gives over the built
+    box, so the cells shrink with it, though never below ``finest_cell`` (0: no floor).
+
+    Example:
+        >>> cubic_vertices(65, (2.0, 2.0, 0.5), (2.0, 2.0, 0.5))
+        (65, 65, 17)
+    """
+    built_cell = max(built_extent) / (resolution - 1)
+    shrink = (math.prod(extent) / math.prod(built_extent)) ** (1 / 3)
+    cell = max(built_cell * shrink, min(built_cell, finest_cell))
+    return tuple(max(2, round(side / cell) + 1) for side in extent)  # type: ignore[return-value]

@@ -9,7 +9,6 @@ weight), which is where most of the speed of the fast preset comes from.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -20,7 +19,7 @@ from ..core.scene_bounds import SceneBounds
 from ..field_components.compiled_grid import density_components, read_grids
 from ..model_components.compiled_march import GridDensity
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
-from ..field_components.grid_growth import grown_resolution
+from ..field_components.grid_growth import cubic_vertices, grown_resolution
 from .base import MarchableField, SampleCost, cell_corner_max
 from .grid_appearance import GridAppearance
 
@@ -95,10 +94,7 @@ class GridField(GridAppearance, MarchableField):
         as many cells as that gives over the built box, as cubes (not below ``finest_cell``)."""
         if not self.config.cubic_cells:
             return (resolution,) * 3
-        built_cell = max(self.built_extent) / (resolution - 1)
-        shrink = (math.prod(self.extent) / math.prod(self.built_extent)) ** (1 / 3)
-        cell = max(built_cell * shrink, min(built_cell, self.config.finest_cell))
-        return tuple(max(2, round(side / cell) + 1) for side in self.extent)  # type: ignore[return-value]
+        return cubic_vertices(resolution, self.extent, self.built_extent, self.config.finest_cell)
 
     def fit_box(self, box: SceneBounds) -> bool:
         """Narrow both grids to ``box`` (inside the field's), resampled to the cells

@@ -71,8 +71,8 @@ def load_kernel(name: str) -> tuple[ctypes.CDLL | None, str | None]:
     compiler = c_compiler()
     if compiler is None:
         return None, "no C compiler (cc, gcc or clang) on the PATH; set CC to use another"
-    try:
-        text = source.read_bytes()
+    try:  # the headers beside it too: a kernel may include them
+        text = b"\0".join([source.read_bytes(), *(h.read_bytes() for h in sorted(SOURCES.glob("*.h")))])
     except OSError as exc:  # a partial install: the PyTorch path still runs
         return None, f"{source}: cannot be read ({exc.strerror or exc})"
     key = hashlib.sha256(b"\0".join([text, compiler.encode(), " ".join(FLAGS + NATIVE_FLAGS).encode(),

@@ -371,39 +371,11 @@ int64_t sparse_adam(float *param, float *grad, float *exp_avg, float *exp_avg_sq
     return updated;
 }
 
-/* The training march of the grid field, in one pass a ray: the fixed steps of
- * nerf_backend/model_components/marcher.py's march_edges (first step shortened by the ray's
- * offset, cut at t_far), the occupancy grid's test of each step's midpoint, the density there
- * from the factorised density grid (softplus of the summed features) and the transmittance in
- * front of each sample. Out: the flat indices (ray * steps + step) of the samples in occupied
- * cells that light still reaches (transmittance in front above opaque_transmittance), sorted by
- * ray, then along it, and each one's weight (without gradients: which samples need a colour): what marcher.occupied_samples and marcher.lit_samples find through
- * tensors of every step of every ray. The field's pass with gradients then runs on those. */
-typedef struct {
-    float step;
-    int64_t steps;
-    int64_t cells[3];
-    float box_min[3];
-    float box_max[3];
-    float density_scale, density_shift;
-    float opaque_transmittance;
-    int64_t block_shift;        /* a block is 2^block_shift cells a side */
-    int64_t blocks[3];
-    int64_t z_bytes;            /* bytes of occupancy bits a (x, y) column: ceil(Gz / 8) */
-} TrainMarch;
+/* The training march reads the density grid: its 3 components, the density the sum of their
+ * features (a Component[3]). */
+typedef Component DensitySource;
 
-typedef struct {
-    const TrainMarch *s;
-    const float *origins, *directions, *t_near, *t_far, *offset;
-    const uint8_t *occupied, *blocks;  /* cells' bits (8 along z a byte); blocks holding an occupied cell */
-    const Component *density;   /* the density grid's 3 components */
-    int64_t begin, end;         /* rays */
-    int64_t *lit;               /* room for (end - begin) * steps indices */
-    float *weight;              /* and their weights (transmittance in front times alpha) */
-    int64_t found, occupied_count;
-} TrainMarchWork;
-
-static inline float density_at(const Component *density, const float x[3]) {
+static inline float density_at(const DensitySource *density, const float x[3]) {
     float features[MAX_TASKS * 64];
     float sum = 0.0f;
     for (int i = 0; i < 3; ++i) {
@@ -414,95 +386,10 @@ static inline float density_at(const Component *density, const float x[3]) {
     return sum;
 }
 
-static void *train_march_work(void *arg) {
-    TrainMarchWork *w = (TrainMarchWork *)arg;
-    const TrainMarch *s = w->s;
-    int64_t found = 0, occupied_count = 0;
-    float inverse_extent[3];
-    for (int a = 0; a < 3; ++a) inverse_extent[a] = 1.0f / (s->box_max[a] - s->box_min[a]);
-    for (int64_t r = w->begin; r < w->end; ++r) {
-        const float *o = w->origins + 3 * r, *d = w->directions + 3 * r;
-        const float near = w->t_near[r], far = w->t_far[r], offset = w->offset[r];
-        float transmittance = 1.0f;
-        int64_t last_cell = -1;  /* steps are half a cell: most fall in the cell the last one did */
-        int last_occupied = 0;
-        for (int64_t i = 0; i < s->steps; ++i) {
-            float a = (float)i - 1.0f + offset, b = (float)i + offset;  /* as march_edges */
-            a = a > 0.0f ? a : 0.0f;
-            b = b > 0.0f ? b : 0.0f;
-            float lo = near + a * s->step, hi = near + b * s->step;
-            lo = lo < far ? lo : far;
-            hi = hi < far ? hi : far;
-            const float delta = hi - lo;
-            if (!(delta > 0.0f)) continue;
-            const float t = 0.5f * (lo + hi);
-            float p[3], x[3];
-            int inside = 1;
-            int64_t ijk[3];
-            for (int axis = 0; axis < 3; ++axis) {
-                p[axis] = o[axis] + d[axis] * t;
-                inside &= p[axis] >= s->box_min[axis] && p[axis] <= s->box_max[axis];
-                float unit = (p[axis] - s->box_min[axis]) * inverse_extent[axis];
-                float cell = floorf(unit * (float)s->cells[axis]);
-                if (!(cell >= 0.0f)) cell = 0.0f;
-                if (cell > (float)(s->cells[axis] - 1)) cell = (float)(s->cells[axis] - 1);
-                ijk[axis] = (int64_t)cell;
-                x[axis] = unit * 2.0f - 1.0f;
-            }
-            if (!inside) continue;
-            const int64_t sh = s->block_shift;
-            if (!w->blocks[((ijk[0] >> sh) * s->blocks[1] + (ijk[1] >> sh)) * s->blocks[2] + (ijk[2] >> sh)]) continue;
-            const int64_t cell = (ijk[0] * s->cells[1] + ijk[1]) * s->cells[2] + ijk[2];
-            if (cell != last_cell) {
-                last_cell = cell;
-                last_occupied = (w->occupied[(ijk[0] * s->cells[1] + ijk[1]) * s->z_bytes + (ijk[2] >> 3)] >> (ijk[2] & 7)) & 1;
-            }
-            if (!last_occupied) continue;
-            ++occupied_count;
-            const float v = density_at(w->density, x) + s->density_shift;
-            const float sigma = s->density_scale * (v > 20.0f ? v : log1pf(expf(v)));
-            const float through = expf(-sigma * delta);
-            w->weight[found] = transmittance * (1.0f - through);
-            w->lit[found++] = r * s->steps + i;
-            transmittance *= through;
-            if (!(transmittance > s->opaque_transmittance)) break;  /* nothing behind is lit */
-        }
-    }
-    w->found = found;
-    w->occupied_count = occupied_count;
-    return NULL;
+static inline int density_readable(const DensitySource *density) {
+    for (int i = 0; i < 3; ++i)
+        if (density[i].channels < 1 || density[i].channels % BLOCK != 0 || density[i].channels > 64) return 0;
+    return 1;
 }
 
-/* Returns the number of lit samples written to the front of `lit` (room for rays * steps), or
- * -1 for components it cannot read; `occupied_count` receives the density reads made. */
-int64_t march_train(const TrainMarch *s, const float *origins, const float *directions, const float *t_near,
-                    const float *t_far, const float *offset, int64_t rays, const uint8_t *occupied, const uint8_t *blocks,
-                    const Component *density, int64_t *lit, float *weight, int64_t *occupied_count,
-                    int64_t threads) {
-    for (int i = 0; i < 3; ++i)
-        if (density[i].channels < 1 || density[i].channels % BLOCK != 0 || density[i].channels > 64) return -1;
-    threads = clamp_threads(threads, (rays + 63) / 64);
-    TrainMarchWork work[MAX_THREADS];
-    pthread_t handles[MAX_THREADS];
-    int started[MAX_THREADS] = {0};
-    for (int64_t t = 0; t < threads; ++t) {
-        TrainMarchWork w = {s, origins, directions, t_near, t_far, offset, occupied, blocks, density,
-                            rays * t / threads, rays * (t + 1) / threads, lit + (rays * t / threads) * s->steps,
-                            weight + (rays * t / threads) * s->steps, 0, 0};
-        work[t] = w;
-    }
-    for (int64_t t = 1; t < threads; ++t)
-        started[t] = pthread_create(&handles[t], NULL, train_march_work, &work[t]) == 0;
-    train_march_work(&work[0]);
-    int64_t total = work[0].found, reads = work[0].occupied_count;
-    for (int64_t t = 1; t < threads; ++t) {
-        if (started[t]) pthread_join(handles[t], NULL);
-        else train_march_work(&work[t]);
-        memmove(lit + total, work[t].lit, (size_t)work[t].found * sizeof(int64_t));  /* after the ones before */
-        memmove(weight + total, work[t].weight, (size_t)work[t].found * sizeof(float));
-        total += work[t].found;
-        reads += work[t].occupied_count;
-    }
-    *occupied_count = reads;
-    return total;
-}
+#include "train_march.h"

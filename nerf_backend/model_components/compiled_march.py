@@ -179,7 +179,8 @@ def _scratch(size: int) -> tuple[Tensor, Tensor]:
 class _TrainMarch(ctypes.Structure):
     _fields_ = [("step", ctypes.c_float), ("steps", ctypes.c_int64), ("cells", ctypes.c_int64 * 3),
                 ("box_min", ctypes.c_float * 3), ("box_max", ctypes.c_float * 3), ("density_scale", ctypes.c_float),
-                ("density_shift", ctypes.c_float), ("opaque_transmittance", ctypes.c_float),
+                ("density_shift", ctypes.c_float), ("density_gain", ctypes.c_float),
+                ("opaque_transmittance", ctypes.c_float),
                 ("block_shift", ctypes.c_int64), ("blocks", ctypes.c_int64 * 3), ("z_bytes", ctypes.c_int64)]
 
 
@@ -192,20 +193,44 @@ class GridDensity:
     tables: list  # the tensors they point into, kept alive
     scale: float
     shift: float
+    gain = 1.0
+    kernel = "vm_grid"  # the kernel whose march_train reads it
 
 
-def compiled_lit_samples(occupancy: OccupancyGrid, step: float, steps: int, density: GridDensity):
+@dataclass(frozen=True)
+class SparseDensity:
+    """A density the compiled training march reads: ``scale · softplus(gain · v + shift)`` of a
+    sparse voxel grid's density channel (``SparseVoxelGrid``, its first channel)."""
+
+    components: object  # a pointer to the grid as sparse_grid.c reads it
+    grid: object  # the SparseVoxelGrid, kept alive
+    scale: float
+    shift: float
+    gain: float
+    kernel = "sparse_grid"
+
+    @classmethod
+    def of(cls, grid, scale: float, shift: float, gain: float) -> "SparseDensity | None":
+        """The grid's density, or None where the kernel cannot read it (not on the CPU in
+        float32, no C compiler)."""
+        values = grid.values
+        if values.device.type != "cpu" or values.dtype != torch.float32 or load_kernel("sparse_grid")[0] is None:
+            return None
+        return cls(ctypes.pointer(grid.kernel_view()), grid, scale, shift, gain)
+
+
+def compiled_lit_samples(occupancy: OccupancyGrid, step: float, steps: int, density: GridDensity | SparseDensity):
     """A ``LitSamplesFn`` (core/field_functions.py) for ``render_marched``: the training march's
-    lit samples and their weights (without gradients) found by ``kernels/vm_grid.c``'s
-    ``march_train`` in one pass a ray, where ``marcher.occupied_samples`` and ``lit_samples``
-    build tensors of every step of every ray (lego at 800×800: 254 steps a ray, 1 in 10
-    occupied). The same samples, up to float rounding at cell borders (tests/test_compiled_grid.py)."""
-    library = load_kernel("vm_grid")[0]
+    lit samples and their weights (without gradients) found by ``kernels/train_march.h``'s
+    ``march_train`` (built into the density's kernel) in one pass a ray, where
+    ``marcher.occupied_samples`` and ``lit_samples`` build tensors of every step of every ray
+    (lego at 800×800: 254 steps a ray, 1 in 10 occupied). The same samples, up to float rounding at cell borders (tests/test_compiled_grid.py)."""
+    library = load_kernel(density.kernel)[0]
     library.march_train.restype = ctypes.c_int64
     settings = _TrainMarch(step=step, steps=steps, cells=(ctypes.c_int64 * 3)(*occupancy.cells),
                            box_min=(ctypes.c_float * 3)(*occupancy.box_min.tolist()),
                            box_max=(ctypes.c_float * 3)(*occupancy.box_max.tolist()),
-                           density_scale=density.scale, density_shift=density.shift,
+                           density_scale=density.scale, density_shift=density.shift, density_gain=density.gain,
                            opaque_transmittance=OPAQUE_TRANSMITTANCE, block_shift=TRAIN_BLOCK_SHIFT)
     occupied = occupancy.occupied_bits()
     blocks = occupancy.occupied_blocks(1 << TRAIN_BLOCK_SHIFT).contiguous().view(torch.uint8)
@@ -223,7 +248,7 @@ def compiled_lit_samples(occupancy: OccupancyGrid, step: float, steps: int, dens
                                     ctypes.byref(reads),
                                     ctypes.c_int64(torch.get_num_threads()))
         if lit_count < 0:
-            raise RuntimeError("vm_grid.c's march_train refused the density grid")
+            raise RuntimeError(f"{density.kernel}.c's march_train refused the density grid")
         with stage("density pass", items=reads.value):  # done inside the march; its reads counted here
             pass
         count(COMPILED_TRAINING_MARCH, rays)

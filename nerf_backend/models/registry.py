@@ -8,6 +8,7 @@ from ..core.scene_bounds import SceneBounds
 from ..data.occupancy_prior import OccupancyPrior
 from ..fields.grid_field import GridField
 from ..fields.hash_field import HashField
+from ..fields.plenoxel_field import PlenoxelField
 from ..fields.surface_field import SurfaceField
 from .base import Model, ModelSettings
 from .marched import MarchedModel
@@ -16,12 +17,14 @@ from .nerf import NerfModel
 GridModel = MarchedModel.of(GridField)  # factorised grids + occupancy march (the fast preset)
 HashModel = MarchedModel.of(HashField)  # multiresolution hash grid + occupancy march (Instant-NGP)
 SurfaceModel = MarchedModel.of(SurfaceField)  # a signed distance in a dense grid, rendered as VolSDF's density
+PlenoxelModel = MarchedModel.of(PlenoxelField)  # a sparse voxel grid of density and harmonics (Plenoxels)
 
 MODELS: dict[str, type[Model]] = {
     "nerf": NerfModel,  # the paper's MLPs, coarse-to-fine
     "grid": GridModel,
     "hash": HashModel,
     "surface": SurfaceModel,
+    "plenoxels": PlenoxelModel,
 }
 
 

@@ -53,6 +53,30 @@ def pixel_footprint(split: DatasetSplit, box: SceneBounds) -> float:
     return float(distances.mean()) / focal
 
 
+def pixel_resolution(footprint: float, sides: tuple[float, float, float], cubic_cells: bool = True) -> tuple[int, str]:
+    """Vertices along the box's longest side that resolve a pixel of ``footprint`` (world
+    units) in a box of ``sides`` (with cubic cells: a cube's cells spread over the box), within
+    [MIN_RESOLUTION, MAX_RESOLUTION], and why."""
+    extent = max(sides)
+    per_pixel = math.ceil(extent / footprint) + 1
+    reason = (f"a pixel covers {footprint:.4f} units at the scene's centre and the box is {extent:.3f} across: "
+              f"{per_pixel} vertices a side resolve every pixel")
+    wanted = per_pixel
+    if cubic_cells:
+        # The cells a cube of that resolution would have, spread over the box with cubic
+        # cells: a flat or long box gets finer cells along its long sides for the same cost.
+        cell = math.prod(sides) ** (1 / 3) / (per_pixel - 1)
+        wanted = round(extent / cell) + 1
+        if wanted != per_pixel:
+            reason += (f"; the box is not a cube ({' × '.join(f'{side:.2f}' for side in sides)}): the "
+                       f"{(per_pixel - 1) ** 3:,} cells of a {per_pixel}-vertex cube, spread over it as cubic "
+                       f"cells of {cell:.4f}, give {wanted} vertices along its longest side")
+    clamped = max(MIN_RESOLUTION, min(MAX_RESOLUTION, wanted))
+    if clamped != wanted:
+        reason += f" (clamped to [{MIN_RESOLUTION}, {MAX_RESOLUTION}])"
+    return clamped, reason
+
+
 def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profile: dict | None,
                 user_set: frozenset[str] = frozenset()) -> tuple[TrainConfig, dict]:
     """``base`` (the fast preset, with the user's ``--set`` changes) adjusted to the scene,
@@ -76,22 +100,7 @@ def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profil
     footprint = pixel_footprint(split, box)
     sides = tuple(hi - lo for lo, hi in zip(box.box_min, box.box_max))
     extent = max(sides)
-    per_pixel = math.ceil(extent / footprint) + 1
-    reason = (f"a pixel covers {footprint:.4f} units at the scene's centre and the box is {extent:.3f} across: "
-              f"{per_pixel} vertices a side resolve every pixel")
-    wanted = per_pixel
-    if base.grid.cubic_cells:
-        # The cells a cube of that resolution would have, spread over the box with cubic
-        # cells: a flat or long box gets finer cells along its long sides for the same cost.
-        cell = math.prod(sides) ** (1 / 3) / (per_pixel - 1)
-        wanted = round(extent / cell) + 1
-        if wanted != per_pixel:
-            reason += (f"; the box is not a cube ({' × '.join(f'{side:.2f}' for side in sides)}): the "
-                       f"{(per_pixel - 1) ** 3:,} cells of a {per_pixel}-vertex cube, spread over it as cubic "
-                       f"cells of {cell:.4f}, give {wanted} vertices along its longest side")
-    clamped = max(MIN_RESOLUTION, min(MAX_RESOLUTION, wanted))
-    if clamped != wanted:
-        reason += f" (clamped to [{MIN_RESOLUTION}, {MAX_RESOLUTION}])"
+    clamped, reason = pixel_resolution(footprint, sides, base.grid.cubic_cells)
     vertices = vertices_for(clamped, sides) if base.grid.cubic_cells else (clamped,) * 3
     resolution = choose("grid_resolution", "grid.resolution", clamped,
                         reason + f"; vertices per axis {vertices[0]}×{vertices[1]}×{vertices[2]}",

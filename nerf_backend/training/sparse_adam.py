@@ -1,9 +1,10 @@
 """Adam that updates only the grid rows a step touched (DVGO's and Instant-NGP's masked Adam),
-for the factorised grids trained through the compiled kernel on the CPU.
+for the grids trained through a compiled kernel on the CPU: the factorised grids' planes and
+lines (``compiled_grid``) and the sparse voxel grid's table (``sparse_grid``).
 
 A step of 1 024 rays on lego at 800×800 touches a few percent of a grid's rows; dense Adam
 reads and writes all of them (p, g, m, v: 28 bytes a parameter) and the dense gradient must be
-zeroed each step besides. Here ``compiled_grid``'s backward adds each sample's gradient into a
+zeroed each step besides. Here the kernel's backward adds each sample's gradient into a
 buffer of the grid's own and marks the rows; ``vm_grid.c``'s ``sparse_adam`` then updates the
 marked rows, zeroes their gradient and clears their marks, and nothing else is touched.
 
@@ -38,14 +39,36 @@ from torch import Tensor
 from ..field_components.compiled_grid import channel_rows, compiled_grid_library
 
 
+def _rows_like(parameter: Tensor) -> Tensor:
+    """Zeros laid out as ``parameter``'s rows are: channel-last for a plane or line, row-major
+    for a table."""
+    if parameter.dim() == 4:
+        return torch.zeros_like(parameter, memory_format=torch.channels_last)
+    return torch.zeros_like(parameter, memory_format=torch.contiguous_format)
+
+
+def _laid_out_in_rows(tensor: Tensor) -> bool:
+    if tensor.dim() == 4:
+        return tensor.is_contiguous(memory_format=torch.channels_last)
+    return tensor.is_contiguous()
+
+
+def _in_rows(tensor: Tensor) -> Tensor:
+    return tensor.contiguous(memory_format=torch.channels_last) if tensor.dim() == 4 else tensor.contiguous()
+
+
+def _row_count(parameter: Tensor) -> int:
+    return channel_rows(parameter).shape[0] if parameter.dim() == 4 else parameter.shape[0]
+
+
 class RowGradients:
-    """A grid's gradient buffers (channel-last, as its planes and lines) and row marks, which the
+    """A grid's gradient buffers (laid out as its parameters' rows) and row marks, which the
     compiled backward fills for the parameters it was made for."""
 
     def __init__(self, parameters: list[Tensor]) -> None:
         self.pointers = [(p.data_ptr(), tuple(p.shape)) for p in parameters]
-        self.gradients = [torch.zeros_like(p, memory_format=torch.channels_last) for p in parameters]
-        self.marks = [torch.zeros(channel_rows(p).shape[0], dtype=torch.uint8) for p in parameters]
+        self.gradients = [_rows_like(p) for p in parameters]
+        self.marks = [torch.zeros(_row_count(p), dtype=torch.uint8) for p in parameters]
 
     def serves(self, parameters: list[Tensor]) -> bool:
         """Whether these are still the parameters the buffers were made for (a grown grid has
@@ -54,8 +77,9 @@ class RowGradients:
 
 
 class RowSparseAdam(torch.optim.Adam):
-    """``torch.optim.Adam`` whose ``grids``' planes and lines, when their gradient came through
-    the compiled kernel, are updated row by row (see the module's notes); ``rows_updated``: the
+    """``torch.optim.Adam`` whose ``grids``' row parameters (each grid's
+    ``sparse_row_parameters()``), when their gradient came through the compiled kernel, are
+    updated row by row (see the module's notes); ``rows_updated``: the
     grid rows the last step updated, ``floats_updated`` the values (the touched rows' and the dense
     parameters'); both None where no compiler is found: then every parameter is dense."""
 
@@ -71,7 +95,7 @@ class RowSparseAdam(torch.optim.Adam):
         if self._library is None:
             return
         for grid in grids:
-            parameters = [p for pair in zip(grid.planes, grid.lines) for p in pair]
+            parameters = grid.sparse_row_parameters()
             sink = RowGradients(parameters)
             grid.row_gradients = sink
             for index, parameter in enumerate(parameters):
@@ -108,7 +132,7 @@ class RowSparseAdam(torch.optim.Adam):
         state = self.state[parameter]
         rows = marks.shape[0]
         if "last_step" not in state or state["last_step"].shape != (rows,) or not all(
-                state[key].is_contiguous(memory_format=torch.channels_last) for key in ("exp_avg", "exp_avg_sq")):
+                _laid_out_in_rows(state[key]) for key in ("exp_avg", "exp_avg_sq")):
             self._prepare_state(state, parameter, rows)
         step = state["step"]
         step += 1
@@ -126,9 +150,9 @@ class RowSparseAdam(torch.optim.Adam):
         last step."""
         if "exp_avg" not in state:
             state["step"] = torch.zeros((), dtype=torch.float32)
-            state["exp_avg"] = torch.zeros_like(parameter, memory_format=torch.channels_last)
-            state["exp_avg_sq"] = torch.zeros_like(parameter, memory_format=torch.channels_last)
+            state["exp_avg"] = _rows_like(parameter)
+            state["exp_avg_sq"] = _rows_like(parameter)
         for key in ("exp_avg", "exp_avg_sq"):
-            state[key] = state[key].contiguous(memory_format=torch.channels_last)
+            state[key] = _in_rows(state[key])
         if "last_step" not in state or state["last_step"].shape != (rows,):
             state["last_step"] = torch.full((rows,), float(state["step"]), dtype=torch.float32)

@@ -31,7 +31,6 @@ from ..data.image_pyramid import ImageLevel, ImagePyramid, level_factor
 from ..data.occupancy_prior import PRIOR_KINDS, OccupancyPrior, load_occupancy_prior
 from ..data.run_folder import IN_USE, LOCK_NAME, RunFolder
 from ..evaluation.render_views import render_image
-from ..field_components.grid_encodings import VectorMatrixGrid
 from ..metrics.image_metrics import mse_to_psnr, psnr
 from ..model_components.ray_bounds import RayBounds, choose_ray_bounds
 from ..models.base import Model
@@ -40,6 +39,7 @@ from .auto import AVAILABLE_PRIOR, PRIOR_KIND, auto_config, pixel_footprint
 from .collapse_guard import CollapseGuard, Verdict, blank_psnr, recovery_config
 from .error_map import ErrorMap
 from .sparse_adam import RowSparseAdam
+from .sparse_grid_size import sparse_grid_size
 from .surface_opacity import surface_opacity
 from .surface_softness import surface_softness
 
@@ -178,11 +178,11 @@ def _optimizer(model: Model, config: TrainConfig) -> torch.optim.Optimizer:
     settings = [{"params": group.parameters, "initial_lr": rate, "lr": rate} for group, rate in zip(groups, rates)]
     # The fused kernel: one pass over each parameter's p, g, m and v instead of a pass per
     # operation (bench-step: 2.7 against 19 ms a step for a 256³ grid's 8 M parameters on 2
-    # CPU cores). A device without it takes the plain one. On the CPU the factorised grids'
-    # rows are updated only where a step touched them (training/sparse_adam.py).
+    # CPU cores). A device without it takes the plain one. On the CPU the grids' rows are
+    # updated only where a step touched them (training/sparse_adam.py).
     adam = dict(betas=config.adam_betas, eps=config.adam_eps)
     if next(model.parameters()).device.type == "cpu":
-        grids = [module for module in model.modules() if isinstance(module, VectorMatrixGrid)]
+        grids = [module for module in model.modules() if hasattr(module, "sparse_row_parameters")]
         return RowSparseAdam(settings, grids=grids, **adam, fused=True)
     try:
         return torch.optim.Adam(settings, **adam, fused=True)
@@ -286,6 +286,10 @@ def _plan_run(run: RunFolder, dataset: Path, train_split: DatasetSplit, options:
             decisions.update(shaped)
         elif config.model == "surface":
             config, shaped = surface_softness(config, train_split, ray_bounds.box, user_set)
+            decisions.update(shaped)
+        elif config.model == "plenoxels":
+            config, shaped = sparse_grid_size(config, train_split, ray_bounds.box, load_scene_profile(dataset),
+                                              user_set)
             decisions.update(shaped)
     prior = _occupancy_prior(dataset, config)
     if not options.resume and config.model == "surface":
