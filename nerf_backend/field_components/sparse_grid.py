@@ -82,7 +82,7 @@ class SparseVoxelGrid(nn.Module):
         if _compiled_applies(self, x):
             return _ReadSparse.apply(x, self, self.values)[:, :self.channels]
         rows, weights = self._corners(x)
-        blended = (self.values[:, :self.channels].index_select(0, rows.view(-1)).view(*rows.shape, self.channels)
+        blended = (self.values[:, :self.channels].index_select(0, rows.reshape(-1)).view(*rows.shape, self.channels)
                    * weights[..., None]).sum(dim=1)
         return blended
 
@@ -98,7 +98,7 @@ class SparseVoxelGrid(nn.Module):
                                               None, _pointer(out), None, None, ctypes.c_int64(torch.get_num_threads())))
             return out
         rows, weights = self._corners(x)
-        return (self.values[:, channel].index_select(0, rows.view(-1)).view(rows.shape) * weights).sum(dim=1)
+        return (self.values[:, channel].index_select(0, rows.reshape(-1)).view(rows.shape) * weights).sum(dim=1)
 
     def kernel_view(self, first_channel: int = 0) -> _Grid:
         """The grid as ``sparse_grid.c`` reads it (from ``first_channel``: the density channel

@@ -29,11 +29,13 @@ def total_variation(grid: SparseVoxelGrid, channel_weights: Tensor, vertices: in
     """Σ_c w_c Σ_pairs (v_a,c − v_b,c)² / ``vertices`` over ``vertices`` kept vertices drawn at
     random (all of them, in order, where there are no more), each paired with its kept
     neighbour at +1 along each axis; ``channel_weights`` has the grid's padded width."""
+    device = grid.links.device
     if vertices >= grid.rows:
-        rows = torch.arange(grid.rows)
-    else:
-        rows = torch.randint(grid.rows, (vertices,), generator=generator)
-    first, second = neighbour_pairs(grid, rows.to(grid.links.device))
+        rows = torch.arange(grid.rows, device=device)
+    else:  # drawn where the generator lives (the trainer's is on the model's device)
+        drawn_on = generator.device if generator is not None else device
+        rows = torch.randint(grid.rows, (vertices,), generator=generator, device=drawn_on).to(device)
+    first, second = neighbour_pairs(grid, rows)
     return _TotalVariation.apply(grid.values, grid, first, second, channel_weights, max(1, rows.numel()))
 
 
