@@ -123,3 +123,14 @@ def test_the_surface_presets_opacity_is_neus_only_where_the_prior_bounds_the_sur
     config, decision = surface_opacity(user, bounded, frozenset({"surface.opacity"}))
     assert config.surface.opacity == "volsdf"
     assert decision["surface_opacity"]["reason"].startswith("set with --set surface.opacity; the rule would choose 'neus'")
+
+
+def test_auto_trains_the_model_its_measurements_chose_and_says_why():
+    """The factorised grids, with the figures that chose them over Plenoxels; a model given with
+    --set is the user's, and the record says what auto would have chosen."""
+    config, decisions = auto_config(PRESETS["auto"], _split(), BOX, PROFILE)
+    assert config.model == decisions["model"]["value"] == "grid"
+    assert "plenoxels" in decisions["model"]["reason"] and " dB" in decisions["model"]["reason"]
+    chosen = with_overrides(PRESETS["auto"], ["model=plenoxels"])
+    config, decisions = auto_config(chosen, _split(), BOX, PROFILE, frozenset({"model"}))
+    assert config.model == "plenoxels" and decisions["model"]["reason"].startswith("set with --set model")

@@ -234,13 +234,14 @@ def test_a_checkpoint_of_a_grown_and_pruned_field_loads_into_a_new_one():
 
 def test_the_plenoxels_preset_learns_the_demo(tiny_demo_dataset, tmp_path):
     """A real run (the plenoxels preset, 300 steps on the 40×40 demo, its grid sized to the
-    pixels: 32 vertices a side). Measured: validation 32.66 dB (seed 1); the floor leaves 2.5 dB
-    for another machine's rounding."""
+    pixels: 32 vertices a side). Measured: validation 29.75 dB (seed 1; 32.66 with half the
+    gains, which lego's 800×800 views learn too slowly with); the floor leaves 2.25 dB for
+    another machine's rounding, and a blank image scores 16.3."""
     run = tmp_path / "run"
     run_python("-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "plenoxels", "--iters", "300",
                "--seed", "1", "--no-progress", "--out", str(run))
     events = [json.loads(line) for line in (run / "events.jsonl").read_text().splitlines()]
     done = next(event for event in events if event["event"] == "done")
-    assert done["iteration"] == 300 and done["val_psnr"] > 30.0
+    assert done["iteration"] == 300 and done["val_psnr"] > 27.5
     decisions = json.loads((run / "config.json").read_text())["decisions"]
     assert decisions["grid_resolution"]["value"] == 32

@@ -1,4 +1,4 @@
-"""``bench-step`` for marched presets (fast, auto, hash): one training step and one test view
+"""``bench-step`` for marched presets (fast, auto, hash, surface, plenoxels): one training step and one test view
 rendered at the dataset's size, split by stage (``core.stage_timer``), each stage against what
 this machine can do (``hardware.measure_hardware``): where the time goes, and how far each
 stage is from its limit.
@@ -14,7 +14,7 @@ allows. The work is counted three ways, and the reference is the largest of the 
 - random cache lines gathered, at the measured rate of random 64-byte lines from a table of the
   field's size: the grid rows the step touched (the row-sparse optimiser counts them), each
   read once by the field's forward, and read and written again (values and gradients) by the
-  backward. Samples along a ray share rows, so rows, not samples times rows, are the floor.
+  backward (only written, for a voxel grid's blend: ``MarchableField.BACKWARD_WORK``). Samples along a ray share rows, so rows, not samples times rows, are the floor.
 A stage the model cannot bound has no reference; its share of the time still says what it costs.
 The profile names the stage with the most time above its reference: where a step can gain most.
 """
@@ -117,13 +117,15 @@ def profile_marched_step(dataset: Path, preset: str, steps: int, out_dir: Path, 
     density_flops = train_items["density pass"] * costs["density"].flops
     # The compiled training march does the density pass inside its own pass: its reads count there.
     compiled_training = bool(train_items.get(COMPILED_TRAINING_MARCH))
+    backward_work = model.field.BACKWARD_WORK
     train_references = {
         "march": _reference(hardware, bytes_moved=train_items["march"] * MARCH_BYTES_PER_SAMPLE,
                             flops=density_flops if compiled_training else 0.0),
         "density pass": None if compiled_training else _reference(hardware, flops=density_flops),
         "field": _reference(hardware, flops=field_work, lines=grid_lines),
-        # Backward: the forward's FLOPs twice over; the rows read again and their gradients written.
-        "backward": _reference(hardware, flops=2 * field_work, lines=2 * grid_lines),
+        # Backward: the forward's FLOPs twice over, the rows read again and their gradients
+        # written; a voxel grid's blend only writes its gradients (BACKWARD_WORK).
+        "backward": _reference(hardware, flops=backward_work * field_work, lines=backward_work * grid_lines),
         "optimiser": _reference(hardware, bytes_moved=train_items["optimiser"] * ADAM_BYTES_PER_VALUE),
     }
     compiled = "spans" not in render_timer.seconds

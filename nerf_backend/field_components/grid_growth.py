@@ -35,3 +35,15 @@ def cubic_vertices(resolution: int, extent: tuple[float, ...], built_extent: tup
     shrink = (math.prod(extent) / math.prod(built_extent)) ** (1 / 3)
     cell = max(built_cell * shrink, min(built_cell, finest_cell))
     return tuple(max(2, round(side / cell) + 1) for side in extent)  # type: ignore[return-value]
+
+
+def stage_of(initial: int, final: int, upsample_iterations: tuple[int, ...], vertices_at, vertices) -> int:
+    """The schedule's resolution that a grid of ``vertices`` stands for (the stage whose
+    ``vertices_at(resolution)`` it has: a checkpoint's grid), else the final one.
+
+    Example:
+        >>> stage_of(32, 128, (100, 200), lambda r: (r, r, r), (64, 64, 64))
+        64
+    """
+    stages = {grown_resolution(initial, final, upsample_iterations, at) for at in (0, *upsample_iterations)}
+    return next((r for r in sorted(stages) if vertices_at(r) == vertices), final)

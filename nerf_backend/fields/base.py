@@ -60,6 +60,10 @@ class MarchableField(nn.Module):
     # Whether the field is built from the dataset's occupancy prior as well
     # (``Field(config, box, prior)``): the surface field starts its distance from it.
     STARTS_FROM_PRIOR: bool = False
+    # The backward pass's work over the forward's, for bench-step's reference: the gradient of a
+    # product reads its other factors again and writes the gradients (2: the factorised grids,
+    # the networks); a trilinear blend's gradient needs only its weights (1: a voxel grid).
+    BACKWARD_WORK: int = 2
     # The march's step (world units), set by the model whenever its sampling follows the field:
     # a density over a step (``density_along``) may need it.
     march_step: float = 0.0
@@ -79,6 +83,14 @@ class MarchableField(nn.Module):
         self.box_min.copy_(torch.tensor(box.box_min, dtype=torch.float32))
         self.box_max.copy_(torch.tensor(box.box_max, dtype=torch.float32))
         self.extent = tuple(hi - lo for lo, hi in zip(box.box_min, box.box_max))
+
+    def _take_box(self, state: dict[str, Tensor]) -> bool:
+        """Take the box a checkpoint's ``state`` was saved with; True when it changed."""
+        box = SceneBounds(tuple(state["box_min"].tolist()), tuple(state["box_max"].tolist()))  # type: ignore[arg-type]
+        if box == self.box:
+            return False
+        self._set_box(box)
+        return True
 
     def fit_box(self, box: SceneBounds) -> bool:
         """Narrow the field to ``box`` (inside its own), keeping what it holds there; False

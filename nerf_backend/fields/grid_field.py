@@ -19,7 +19,7 @@ from ..core.scene_bounds import SceneBounds
 from ..field_components.compiled_grid import density_components, read_grids
 from ..model_components.compiled_march import GridDensity
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
-from ..field_components.grid_growth import cubic_vertices, grown_resolution
+from ..field_components.grid_growth import cubic_vertices, grown_resolution, stage_of
 from .base import MarchableField, SampleCost, cell_corner_max
 from .grid_appearance import GridAppearance
 
@@ -229,17 +229,12 @@ class GridField(GridAppearance, MarchableField):
     def match_state(self, state: dict[str, Tensor]) -> bool:
         """Take the box and vertices a checkpoint was saved with (also cubic grids from before
         each axis had its own count), and the schedule's resolution they stand for."""
-        changed = False
-        box = SceneBounds(tuple(state["box_min"].tolist()), tuple(state["box_max"].tolist()))  # type: ignore[arg-type]
-        if box != self.box:
-            self._set_box(box)
-            changed = True
+        changed = self._take_box(state)
         (nx, ny), nz = state["density_grid.planes.0"].shape[-2:], state["density_grid.planes.1"].shape[-1]
         if (nx, ny, nz) != self.vertices:
             self.resize((nx, ny, nz))
             changed = True
         config = self.config
-        stages = {grown_resolution(config.initial_resolution, config.resolution, config.upsample_iterations, at)
-                  for at in (0, *config.upsample_iterations)}
-        self.grown_to = next((r for r in sorted(stages) if self.vertices_at(r) == self.vertices), config.resolution)
+        self.grown_to = stage_of(config.initial_resolution, config.resolution, config.upsample_iterations,
+                                 self.vertices_at, self.vertices)
         return changed

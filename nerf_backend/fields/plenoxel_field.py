@@ -26,7 +26,7 @@ from torch import Tensor, nn
 
 from ..core.field_functions import RayColourFn
 from ..core.scene_bounds import SceneBounds
-from ..field_components.grid_growth import cubic_vertices, grown_resolution
+from ..field_components.grid_growth import cubic_vertices, grown_resolution, stage_of
 from ..field_components.sparse_grid import SparseVoxelGrid, Vertices
 from ..field_components.spherical_harmonics import sh_basis, sh_count
 from ..field_components.total_variation import total_variation
@@ -51,8 +51,8 @@ class PlenoxelFieldConfig:
     # The grid holds density / density_gain and harmonics / colour_gain: Adam moves a row by
     # about the learning rate a step whatever its gradient, and a vertex is touched only by the
     # few rays near it, so its values need larger steps than a shared factorised grid's.
-    density_gain: float = 10.0
-    colour_gain: float = 5.0
+    density_gain: float = 20.0
+    colour_gain: float = 10.0
     # Total variation (mean squared difference to each axis' next vertex) over tv_vertices
     # random kept vertices a step, weighted per channel.
     tv_density: float = 1e-3
@@ -72,6 +72,7 @@ class PlenoxelField(MarchableField):
 
     SETTINGS_GROUP = "plenoxels"
     Config = PlenoxelFieldConfig
+    BACKWARD_WORK = 1  # each corner row's gradient is its weight times the sample's: no value read again
 
     def __init__(self, config: PlenoxelFieldConfig, box: SceneBounds) -> None:
         super().__init__(box)
@@ -252,17 +253,12 @@ class PlenoxelField(MarchableField):
 
     def match_state(self, state: dict[str, Tensor]) -> bool:
         """Take the box, vertices and kept rows a checkpoint was saved with."""
-        changed = False
-        box = SceneBounds(tuple(state["box_min"].tolist()), tuple(state["box_max"].tolist()))  # type: ignore[arg-type]
-        if box != self.box:
-            self._set_box(box)
-            changed = True
+        changed = self._take_box(state)
         links, values = state["grid.links"], state["grid.values"]
         if tuple(links.shape) != self.vertices or values.shape[0] != self.grid.rows:
             self.grid.take_shapes(tuple(links.shape), values.shape[0])  # type: ignore[arg-type]
             changed = True
         config = self.config
-        stages = {grown_resolution(config.initial_resolution, config.resolution, config.upsample_iterations, at)
-                  for at in (0, *config.upsample_iterations)}
-        self.grown_to = next((r for r in sorted(stages) if self.vertices_at(r) == self.vertices), config.resolution)
+        self.grown_to = stage_of(config.initial_resolution, config.resolution, config.upsample_iterations,
+                                 self.vertices_at, self.vertices)
         return changed

@@ -24,7 +24,8 @@
 #include <stdint.h>
 #include <string.h>
 
-#define MAX_THREADS 64
+#include "grid_common.h"
+
 #define BLOCK 8
 #define CORNERS 8
 /* Rows a thread owns together in backward: 16 rows of 32 floats, 2 KB, so two threads never
@@ -42,29 +43,6 @@ typedef struct {
     int64_t n[3];           /* vertices along x, y, z */
     int64_t channels;       /* a multiple of BLOCK */
 } SparseGrid;
-
-typedef struct {
-    float low_weight, high_weight;
-    int64_t lower;
-} AxisCorner;
-
-/* As vm_grid.c: the lower vertex around x in [-1, 1] on an axis of n vertices (kept inside the
- * grid), the hat weights of both (fading to 0 within a cell outside: zero padding); NaN reads
- * nothing. */
-static inline AxisCorner axis_corner(float x, int64_t n) {
-    AxisCorner corner = {0.0f, 0.0f, 0};
-    float position = (x + 1.0f) * (0.5f * (float)(n - 1));
-    if (!(position == position)) return corner;
-    float lower = floorf(position);
-    if (!(lower >= 0.0f)) lower = 0.0f;
-    if (lower > (float)(n - 2)) lower = (float)(n - 2);
-    const float from_lower = position - lower;
-    corner.lower = (int64_t)lower;
-    const float low = 1.0f - fabsf(from_lower), high = 1.0f - fabsf(from_lower - 1.0f);
-    corner.low_weight = low > 0.0f ? low : 0.0f;
-    corner.high_weight = high > 0.0f ? high : 0.0f;
-    return corner;
-}
 
 /* The sample's 8 corner rows (-1: pruned, weight 0) and trilinear weights. */
 static inline void corners_of(const SparseGrid *g, const float *x, int32_t *rows, float *weights) {
@@ -149,23 +127,7 @@ static void *backward_work(void *arg) {
     return NULL;
 }
 
-static int64_t clamp_threads(int64_t threads, int64_t most) {
-    if (threads > most) threads = most;
-    if (threads > MAX_THREADS) threads = MAX_THREADS;
-    return threads < 1 ? 1 : threads;
-}
 
-static void run_all(void *(*fn)(void *), Work *work, int64_t threads) {
-    pthread_t handles[MAX_THREADS];
-    int started[MAX_THREADS] = {0};
-    for (int64_t t = 1; t < threads; ++t)
-        started[t] = pthread_create(&handles[t], NULL, fn, &work[t]) == 0;
-    fn(&work[0]);
-    for (int64_t t = 1; t < threads; ++t) {
-        if (started[t]) pthread_join(handles[t], NULL);
-        else fn(&work[t]);
-    }
-}
 
 static int readable(const SparseGrid *g) {
     return g->channels >= BLOCK && g->channels % BLOCK == 0 && g->n[0] >= 2 && g->n[1] >= 2 && g->n[2] >= 2;
@@ -184,7 +146,7 @@ int sparse_forward(const SparseGrid *g, const float *x, int64_t points, float *f
                     points * t / threads, points * (t + 1) / threads, t, threads};
         work[t] = one;
     }
-    run_all(forward_work, work, threads);
+    run_all(forward_work, work, sizeof work[0], threads);
     return 0;
 }
 
@@ -199,7 +161,7 @@ int sparse_backward(const SparseGrid *g, const int32_t *rows, const float *weigh
                     0, points, t, threads};
         work[t] = one;
     }
-    run_all(backward_work, work, threads);
+    run_all(backward_work, work, sizeof work[0], threads);
     return 0;
 }
 

@@ -1,7 +1,7 @@
 #ifndef TRAIN_MARCH_H
 #define TRAIN_MARCH_H
-/* Included by a kernel's .c file (build.py hashes the headers with it). Needs <math.h>,
- * <pthread.h>, <stdint.h>, <string.h>, MAX_THREADS and clamp_threads(). */
+/* Included by a kernel's .c file (build.py hashes the headers with it), after grid_common.h and
+ * <string.h>. */
 
 /* The training march of a grid field, in one pass a ray, shared by the kernels of the fields
  * whose density it reads (vm_grid.c, sparse_grid.c). The including file defines, before
@@ -110,21 +110,15 @@ int64_t march_train(const TrainMarch *s, const float *origins, const float *dire
     if (!density_readable(density)) return -1;
     threads = clamp_threads(threads, (rays + 63) / 64);
     TrainMarchWork work[MAX_THREADS];
-    pthread_t handles[MAX_THREADS];
-    int started[MAX_THREADS] = {0};
     for (int64_t t = 0; t < threads; ++t) {
         TrainMarchWork w = {s, origins, directions, t_near, t_far, offset, occupied, blocks, density,
                             rays * t / threads, rays * (t + 1) / threads, lit + (rays * t / threads) * s->steps,
                             weight + (rays * t / threads) * s->steps, 0, 0};
         work[t] = w;
     }
-    for (int64_t t = 1; t < threads; ++t)
-        started[t] = pthread_create(&handles[t], NULL, train_march_work, &work[t]) == 0;
-    train_march_work(&work[0]);
+    run_all(train_march_work, work, sizeof work[0], threads);
     int64_t total = work[0].found, reads = work[0].occupied_count;
     for (int64_t t = 1; t < threads; ++t) {
-        if (started[t]) pthread_join(handles[t], NULL);
-        else train_march_work(&work[t]);
         memmove(lit + total, work[t].lit, (size_t)work[t].found * sizeof(int64_t));  /* after the ones before */
         memmove(weight + total, work[t].weight, (size_t)work[t].found * sizeof(float));
         total += work[t].found;

@@ -24,7 +24,8 @@
 #include <stdint.h>
 #include <string.h>
 
-#define MAX_THREADS 64
+#include "grid_common.h"
+
 #define MAX_TASKS 16
 
 typedef struct {
@@ -43,28 +44,6 @@ typedef struct {
     int32_t pad;
 } Component;
 
-typedef struct {
-    float low_weight, high_weight;
-    int32_t lower;
-} AxisCorner;
-
-/* The lower of the two vertices read around coordinate x in [-1, 1] on an axis of n vertices
- * (kept inside the grid) and the hat weights of both: linear inside, fading to 0 within a cell
- * outside the grid (grid_sample's zero padding). NaN reads nothing. */
-static inline AxisCorner axis_corner(float x, int32_t n) {
-    AxisCorner corner = {0.0f, 0.0f, 0};
-    float position = (x + 1.0f) * (0.5f * (float)(n - 1));
-    if (!(position == position)) return corner;
-    float lower = floorf(position);
-    if (!(lower >= 0.0f)) lower = 0.0f;
-    if (lower > (float)(n - 2)) lower = (float)(n - 2);
-    float from_lower = position - lower;
-    corner.lower = (int32_t)lower;
-    const float low = 1.0f - fabsf(from_lower), high = 1.0f - fabsf(from_lower - 1.0f);
-    corner.low_weight = low > 0.0f ? low : 0.0f;
-    corner.high_weight = high > 0.0f ? high : 0.0f;
-    return corner;
-}
 
 typedef struct {
     AxisCorner a, b, c;
@@ -198,25 +177,7 @@ static void *backward_work(void *arg) {
     return NULL;
 }
 
-static int64_t clamp_threads(int64_t threads, int64_t most) {
-    if (threads > most) threads = most;
-    if (threads > MAX_THREADS) threads = MAX_THREADS;
-    return threads < 1 ? 1 : threads;
-}
 
-/* Runs work[0] on the calling thread and the others on new threads; a thread that cannot be
- * started runs its share here. */
-static void run_all(void *(*fn)(void *), Work *work, int64_t threads) {
-    pthread_t handles[MAX_THREADS];
-    int started[MAX_THREADS] = {0};
-    for (int64_t t = 1; t < threads; ++t)
-        started[t] = pthread_create(&handles[t], NULL, fn, &work[t]) == 0;
-    fn(&work[0]);
-    for (int64_t t = 1; t < threads; ++t) {
-        if (started[t]) pthread_join(handles[t], NULL);
-        else fn(&work[t]);
-    }
-}
 
 /* Features of `points` samples x [P, 3] in [-1, 1] for each component. */
 int vm_forward(const Component *components, int32_t count, const float *x, int64_t points, int64_t threads) {
@@ -233,7 +194,7 @@ int vm_forward(const Component *components, int32_t count, const float *x, int64
         work[t].end = points * (t + 1) / threads;
         work[t].owned_count = 0;
     }
-    run_all(forward_work, work, threads);
+    run_all(forward_work, work, sizeof work[0], threads);
     return 0;
 }
 
@@ -266,7 +227,7 @@ int vm_backward(const Component *components, int32_t count, const float *x, int6
         work[least].owned[work[least].owned_count++] = largest;
         load[least] += components[largest].channels;
     }
-    run_all(backward_work, work, threads);
+    run_all(backward_work, work, sizeof work[0], threads);
     return 0;
 }
 
@@ -346,8 +307,6 @@ int64_t sparse_adam(float *param, float *grad, float *exp_avg, float *exp_avg_sq
                     int64_t threads) {
     threads = clamp_threads(threads, (rows + 4095) / 4096);
     AdamWork work[MAX_THREADS];
-    pthread_t handles[MAX_THREADS];
-    int started[MAX_THREADS] = {0};
     float decay1[DECAY_TABLE], decay2[DECAY_TABLE];
     decay1[0] = decay2[0] = 1.0f;
     for (int k = 1; k < DECAY_TABLE; ++k) {
@@ -359,15 +318,9 @@ int64_t sparse_adam(float *param, float *grad, float *exp_avg, float *exp_avg_sq
                       rows * t / threads, rows * (t + 1) / threads, 0, decay1, decay2};
         work[t] = w;
     }
-    for (int64_t t = 1; t < threads; ++t)
-        started[t] = pthread_create(&handles[t], NULL, adam_work, &work[t]) == 0;
-    adam_work(&work[0]);
-    int64_t updated = work[0].updated;
-    for (int64_t t = 1; t < threads; ++t) {
-        if (started[t]) pthread_join(handles[t], NULL);
-        else adam_work(&work[t]);
-        updated += work[t].updated;
-    }
+    run_all(adam_work, work, sizeof work[0], threads);
+    int64_t updated = 0;
+    for (int64_t t = 0; t < threads; ++t) updated += work[t].updated;
     return updated;
 }
 

@@ -4,6 +4,8 @@ Blender knows the scene, and the dataset carries that knowledge (``scene_profile
 along with the images. Each decision is returned with its reason and recorded in the
 run's ``config.json``:
 
+- model: the factorised grids, measured against the other models at equal time (the plenoxels
+  preset's sparse voxel grid lost by 4.9 dB on lego at 10 minutes on 2 CPU cores);
 - bounds: the scene's box (from the profile) limits every ray and the grids; without it the
   box is a guess, narrowed at the first growth to what the field has filled (``fit_box_at``);
 - view dependence: no glossy, metallic, specular, transmissive, clearcoat or sheen material
@@ -41,6 +43,13 @@ PRIOR_KIND = "solid"
 # better) and 2 200 at 120 s (the final grid as good); held back with 60 s, three real scenes
 # scored 0.19-1.17 dB more (docs/benchmarks_800px.md, "auto sizes its grid for the budget").
 LAST_GROWTH_MIN_STEPS = 1500
+# The model auto trains, chosen by measurement against the others at equal time (the bench
+# tables of docs/benchmarks_lego.md and docs/benchmarks_800px.md).
+MODEL = "grid"
+MODEL_REASON = (
+    "the factorised grids (the fast preset's model), measured against the plenoxels preset (a sparse voxel grid "
+    "of density and harmonics, no network) on lego at 800×800 on 2 CPU cores, they scored 28.04 dB after 2 minutes "
+    "against 21.01, and 31.50 after 10 against 26.58 (docs/benchmarks_lego.md, \"Plenoxels\")")
 # occupancy_prior's value for "PRIOR_KIND where the dataset has a prior, else none".
 AVAILABLE_PRIOR = "available"
 
@@ -88,6 +97,8 @@ def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profil
         value, decisions[name] = decide(key, chosen, reason, base, user_set, **details)
         return value
 
+    model = choose("model", "model", MODEL, MODEL_REASON)
+
     if profile is not None and isinstance(profile.get("view_dependent"), bool):
         dependent = profile["view_dependent"]
         reason = ("the scene has view-dependent materials" if dependent
@@ -130,7 +141,7 @@ def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profil
     grid = dataclasses.replace(base.grid, resolution=resolution, initial_resolution=initial,
                                upsample_iterations=schedule, view_dependent=view_dependent,
                                last_growth_min_steps=last_growth_min_steps, finest_cell=footprint)
-    config = base.with_settings(preset="auto", grid=grid, random_background=random_background,
+    config = base.with_settings(preset="auto", model=model, grid=grid, random_background=random_background,
                                 occupancy_prior=prior, fit_box_at=fit_box_at)
     diagonal = math.sqrt(sum(side ** 2 for side in sides))
     decisions["samples"] = {

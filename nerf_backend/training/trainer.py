@@ -287,7 +287,7 @@ def _plan_run(run: RunFolder, dataset: Path, train_split: DatasetSplit, options:
         elif config.model == "surface":
             config, shaped = surface_softness(config, train_split, ray_bounds.box, user_set)
             decisions.update(shaped)
-        elif config.model == "plenoxels":
+        if config.model == "plenoxels":  # its own preset, or auto's model set to it with --set
             config, shaped = sparse_grid_size(config, train_split, ray_bounds.box, load_scene_profile(dataset),
                                               user_set)
             decisions.update(shaped)
