@@ -224,7 +224,8 @@ def compiled_lit_samples(occupancy: OccupancyGrid, step: float, steps: int, dens
     lit samples and their weights (without gradients) found by ``kernels/train_march.h``'s
     ``march_train`` (built into the density's kernel) in one pass a ray, where
     ``marcher.occupied_samples`` and ``lit_samples`` build tensors of every step of every ray
-    (lego at 800×800: 254 steps a ray, 1 in 10 occupied). The same samples, up to float rounding at cell borders (tests/test_compiled_grid.py)."""
+    (lego at 800×800: 254 steps a ray, 1 in 10 occupied). The same samples, up to float rounding
+    at cell borders (tests/test_compiled_grid.py, tests/test_sparse_grid.py)."""
     library = load_kernel(density.kernel)[0]
     library.march_train.restype = ctypes.c_int64
     settings = _TrainMarch(step=step, steps=steps, cells=(ctypes.c_int64 * 3)(*occupancy.cells),
