@@ -1,5 +1,5 @@
-"""``bench-step`` for marched presets (fast, auto, hash, surface, plenoxels): one training step and one test view
-rendered at the dataset's size, split by stage (``core.stage_timer``), each stage against what
+"""``bench-step`` for marched presets (fast, auto, hash, surface, plenoxels): one training step
+and one test view rendered at the dataset's size, split by stage (``core.stage_timer``), each stage against what
 this machine can do (``hardware.measure_hardware``): where the time goes, and how far each
 stage is from its limit.
 
@@ -14,7 +14,8 @@ allows. The work is counted three ways, and the reference is the largest of the 
 - random cache lines gathered, at the measured rate of random 64-byte lines from a table of the
   field's size: the grid rows the step touched (the row-sparse optimiser counts them), each
   read once by the field's forward, and read and written again (values and gradients) by the
-  backward (only written, for a voxel grid's blend: ``MarchableField.BACKWARD_WORK``). Samples along a ray share rows, so rows, not samples times rows, are the floor.
+  backward (only written, for a voxel grid's blend: ``MarchableField.BACKWARD_WORK``). Samples
+  along a ray share rows, so rows, not samples times rows, are the floor.
 A stage the model cannot bound has no reference; its share of the time still says what it costs.
 The profile names the stage with the most time above its reference: where a step can gain most.
 """

@@ -10,14 +10,15 @@
  *   float density_at(const DensitySource *, const float x[3])  its pre-activation at x in [-1, 1];
  *   int density_readable(const DensitySource *)                 whether it can be read at all.
  *
- * The march: the fixed steps of
- * nerf_backend/model_components/marcher.py's march_edges (first step shortened by the ray's
- * offset, cut at t_far), the occupancy grid's test of each step's midpoint, the density there
- * (scale * softplus(gain * density_at + shift)) and the transmittance in front of each sample. Out: the flat indices (ray * steps + step) of the samples in occupied
- * cells that light still reaches (transmittance in front above opaque_transmittance), sorted by
- * ray, then along it, and each one's weight (without gradients: which samples need a colour):
- * what marcher.occupied_samples and marcher.lit_samples find through tensors of every step of
- * every ray. The field's pass with gradients then runs on those. */
+ * The march: the fixed steps of nerf_backend/model_components/marcher.py's march_edges (first
+ * step shortened by the ray's offset, cut at t_far), the occupancy grid's test of each step's
+ * midpoint, the density there (scale * softplus(gain * density_at + shift)) and the
+ * transmittance in front of each sample. Out: the flat indices (ray * steps + step) of the
+ * samples in occupied cells that light still reaches (transmittance in front above
+ * opaque_transmittance), sorted by ray, then along it, and each one's weight (without
+ * gradients: which samples need a colour): what marcher.occupied_samples and
+ * marcher.lit_samples find through tensors of every step of every ray. The field's pass with
+ * gradients then runs on those. */
 typedef struct {
     float step;
     int64_t steps;

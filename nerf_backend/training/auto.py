@@ -5,7 +5,7 @@ along with the images. Each decision is returned with its reason and recorded in
 run's ``config.json``:
 
 - model: the factorised grids, measured against the other models at equal time (the plenoxels
-  preset's sparse voxel grid lost by 4.9 dB on lego at 10 minutes on 2 CPU cores);
+  preset's sparse voxel grid lost by 5.3 dB on lego at 10 minutes on 2 CPU cores);
 - bounds: the scene's box (from the profile) limits every ray and the grids; without it the
   box is a guess, narrowed at the first growth to what the field has filled (``fit_box_at``);
 - view dependence: no glossy, metallic, specular, transmissive, clearcoat or sheen material
@@ -49,7 +49,7 @@ MODEL = "grid"
 MODEL_REASON = (
     "the factorised grids (the fast preset's model), measured against the plenoxels preset (a sparse voxel grid "
     "of density and harmonics, no network) on lego at 800×800 on 2 CPU cores, they scored 28.04 dB after 2 minutes "
-    "against 21.01, and 31.50 after 10 against 26.58 (docs/benchmarks_lego.md, \"Plenoxels\")")
+    "against 21.01, and 31.88 after 10 against 26.58 (docs/benchmarks_lego.md, \"Plenoxels\")")
 # occupancy_prior's value for "PRIOR_KIND where the dataset has a prior, else none".
 AVAILABLE_PRIOR = "available"
 
