@@ -211,3 +211,22 @@ class MarchableField(nn.Module):
         """Take the shapes a checkpoint's ``state`` (this field's entries) was saved with.
         True when the field changed shape."""
         return False
+
+
+class VertexOccupancy:
+    """Mixed into a ``MarchableField`` whose density is a monotone activation of a value
+    trilinear in each grid cell (the grid and Plenoxels fields): the occupancy grid's cells are
+    the grid's, and a cell's largest density is its largest corner's, exactly. The field gives
+    ``vertices`` and ``vertex_density()`` (``[Nx, Ny, Nz]``)."""
+
+    def occupancy_cells(self) -> tuple[int, int, int]:
+        return tuple(n - 1 for n in self.vertices)  # type: ignore[attr-defined, return-value]
+
+    @torch.no_grad()
+    def occupancy_estimate(self) -> tuple[Tensor, float]:
+        density = self.vertex_density()  # type: ignore[attr-defined]
+        return cell_corner_max(density), float(density.mean())
+
+    @torch.no_grad()
+    def cell_max_density(self) -> Tensor:
+        return cell_corner_max(self.vertex_density())  # type: ignore[attr-defined]

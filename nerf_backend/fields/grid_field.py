@@ -20,7 +20,7 @@ from ..field_components.compiled_grid import density_components, read_grids
 from ..model_components.compiled_march import GridDensity
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
 from ..field_components.grid_growth import cubic_vertices, grown_resolution, stage_of
-from .base import MarchableField, SampleCost, cell_corner_max
+from .base import MarchableField, SampleCost, VertexOccupancy
 from .grid_appearance import GridAppearance
 
 
@@ -54,7 +54,7 @@ class GridFieldConfig:
     density_scale: float = 25.0
 
 
-class GridField(GridAppearance, MarchableField):
+class GridField(VertexOccupancy, GridAppearance, MarchableField):
     """``density(x [P,3]) -> [P]`` and ``colour(x [P,3], d [P,3]) -> [P,3]`` in world space.
 
     Points outside ``box`` read the grid's border values; callers sample inside the box.
@@ -174,20 +174,6 @@ class GridField(GridAppearance, MarchableField):
         """Density at every grid vertex ``[Nx, Ny, Nz]``: within each grid cell the
         density's pre-activation is trilinear, so these bound the density in the cell."""
         return self.density_from_features(self.density_grid.dense_sum().permute(2, 1, 0))
-
-    def occupancy_cells(self) -> Vertices:
-        return tuple(n - 1 for n in self.vertices)  # type: ignore[return-value]
-
-    @torch.no_grad()
-    def occupancy_estimate(self) -> tuple[Tensor, float]:
-        """Each cell's largest corner density: exact, because the pre-activation is
-        trilinear inside a cell and the activation is monotone."""
-        density = self.vertex_density()
-        return cell_corner_max(density), float(density.mean())
-
-    @torch.no_grad()
-    def cell_max_density(self) -> Tensor:
-        return cell_corner_max(self.vertex_density())
 
     def encoding_parameters(self) -> list[nn.Parameter]:
         return [*self.density_grid.parameters(), *self.appearance_grid.parameters()]

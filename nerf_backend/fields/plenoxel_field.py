@@ -31,7 +31,7 @@ from ..field_components.sparse_grid import SparseVoxelGrid, Vertices
 from ..field_components.spherical_harmonics import sh_basis, sh_count
 from ..field_components.total_variation import total_variation
 from ..model_components.compiled_march import SparseDensity
-from .base import MarchableField, SampleCost, cell_corner_max
+from .base import MarchableField, SampleCost, VertexOccupancy
 
 
 @dataclass(frozen=True)
@@ -67,7 +67,7 @@ class PlenoxelFieldConfig:
     prune_margin: int = 1
 
 
-class PlenoxelField(MarchableField):
+class PlenoxelField(VertexOccupancy, MarchableField):
     """``density(x [P,3]) -> [P]`` and ``colour(x [P,3], d [P,3]) -> [P,3]`` from a sparse
     voxel grid of density and spherical harmonics. The occupancy grid's cells are the grid's."""
 
@@ -167,18 +167,6 @@ class PlenoxelField(MarchableField):
         """The density channel for the compiled training march (CPU, float32, a C compiler)."""
         config = self.config
         return SparseDensity.of(self.grid, config.density_scale, config.density_shift, config.density_gain)
-
-    def occupancy_cells(self) -> Vertices:
-        return tuple(n - 1 for n in self.vertices)  # type: ignore[return-value]
-
-    @torch.no_grad()
-    def occupancy_estimate(self) -> tuple[Tensor, float]:
-        density = self.vertex_density()
-        return cell_corner_max(density), float(density.mean())
-
-    @torch.no_grad()
-    def cell_max_density(self) -> Tensor:
-        return cell_corner_max(self.vertex_density())
 
     def encoding_parameters(self) -> list[nn.Parameter]:
         return [self.grid.values]
