@@ -126,16 +126,28 @@ def test_resizing_to_a_part_of_the_grid_keeps_the_volume_there():
     assert torch.allclose(grid((points - lower) / (upper - lower) * 2 - 1), before, atol=1e-12)
 
 
-def _blob_model(config=None) -> GridModel:
-    """A fast model over [-1, 1]³ whose density lies only in x ∈ [0.1, 0.6], y ∈ [-0.5, 0],
-    z ∈ [-0.3, 0.4]: every factor is zero outside that part of its axes, so the 2-unit box is
-    mostly empty, as nerf_synthetic's 3-unit box is around its objects."""
+BLOB = ((0.1, 0.6), (-0.5, 0.0), (-0.3, 0.4))
+
+
+def _blob_model(config=None, blob=BLOB) -> GridModel:
+    """A fast model over [-1, 1]³ whose density lies only in ``blob`` (world ranges; by default
+    x ∈ [0.1, 0.6], y ∈ [-0.5, 0], z ∈ [-0.3, 0.4]): every factor is zero outside that part of
+    its axes, so the 2-unit box is mostly empty, as nerf_synthetic's 3-unit box is around its
+    objects."""
     torch.manual_seed(5)
     model = GridModel(config or dataclasses.replace(PRESETS["fast"], fit_box_at=1), BOX)
-    vertices = model.field.vertices
-    inside = [(torch.linspace(-1, 1, n) >= lo) & (torch.linspace(-1, 1, n) <= hi)
-              for n, (lo, hi) in zip(vertices, ((0.1, 0.6), (-0.5, 0.0), (-0.3, 0.4)))]
-    grid = model.field.density_grid
+    _fill_blob(model, blob)
+    return model
+
+
+def _fill_blob(model: GridModel, blob) -> None:
+    """The model's density made to lie only in ``blob`` (world ranges), over its box as it is."""
+    field = model.field
+    inside = []
+    for n, (lo, hi), low, high in zip(field.vertices, blob, field.box_min.tolist(), field.box_max.tolist()):
+        world = torch.linspace(low, high, n)
+        inside.append((world >= lo) & (world <= hi))
+    grid = field.density_grid
     with torch.no_grad():
         for ((a, b), c), plane, line in zip((((0, 1), 2), ((0, 2), 1), ((1, 2), 0)), grid.planes, grid.lines):
             plane.uniform_(0.5, 1.5).mul_((inside[a][:, None] & inside[b][None, :]).float())
@@ -238,6 +250,39 @@ def test_a_box_not_narrowed_at_first_is_tried_again_after_the_next_growth():
     assert model.before_step(18, growth) is True and not model.box_fitted  # the grid grew
     assert model.before_step(19, growth + 1) is True and model.box_fitted
     assert "box fitted" in model.take_note()
+
+
+def test_a_fitted_box_is_fitted_again_after_a_growth_once_the_haze_around_the_scene_has_gone():
+    """The first fit meets a young field whose haze spans more than the scene; the step after
+    each later growth fits the box again from the finer grid's occupancy, with as many cells,
+    so they shrink with it (lego at 800×800: 34 % of the guessed box, then 21 % and 18 %). A
+    box that would keep more than ``REFIT_MAX_KEPT`` of itself is left as it is."""
+    model = _blob_model(blob=((-0.4, 0.8), (-0.9, 0.3), (-0.6, 0.7)))  # the scene and its haze
+    assert model.train().before_step(16, 1) is True and model.box_fitted
+    wide, cells = model.field.extent, math.prod(model.field.occupancy_cells())
+    assert "box fitted to" in model.take_note()
+    _fill_blob(model, BLOB)  # the haze gone
+    model.update_occupancy()
+    growth = PRESETS["fast"].grid.upsample_iterations[0]
+    assert model.before_step(17, growth) is True and model.field.extent == wide  # grown, the box as it was
+    grown_cells = math.prod(model.field.occupancy_cells())
+    assert grown_cells > 2 * cells
+    # Two cells of margin each side, a cell's rounding and the density's spread to the next vertex.
+    margin = 4 * max(side / count for side, count in zip(wide, model.field.occupancy_cells())) + 1e-6
+    assert model.before_step(18, growth + 1) is True  # and fitted again
+    assert "box fitted again" in model.take_note()
+    box_min, box_max = model.field.box_min, model.field.box_max
+    blob_min, blob_max = torch.tensor([r[0] for r in BLOB]), torch.tensor([r[1] for r in BLOB])
+    assert (box_min <= blob_min).all() and (box_max >= blob_max).all()
+    assert (box_min >= blob_min - margin).all() and (box_max <= blob_max + margin).all()
+    assert math.prod(model.field.extent) < 0.3 * math.prod(wide)
+    assert abs(math.prod(model.field.occupancy_cells()) / grown_cells - 1) < 0.1  # the cells shrank with it
+    narrowed = model.field.extent
+    assert model.before_step(19, growth + 2) is False  # no growth: no fit
+    _fill_blob(model, ((-1.0, 1.0),) * 3)  # density over the whole of the narrowed box
+    model.update_occupancy()
+    assert model.fit_box() is False and model.field.extent == narrowed  # it would keep all of itself
+    assert model.take_note() is None  # said only of the first fit
 
 
 def test_a_large_grid_refreshes_its_occupancy_less_often():

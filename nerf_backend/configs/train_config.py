@@ -41,7 +41,8 @@ class TrainConfig:
     render_alpha_threshold: float = 1e-2
     # Marched grid models: at this scheduled step, narrow the field to the box around its occupied
     # cells (the scene's box as the data gives it is often mostly empty: nerf_synthetic's
-    # [-1.5, 1.5]³), keeping its cell count; 0: never (auto: at the first growth).
+    # [-1.5, 1.5]³), keeping its cell count, and again after each later growth; 0: never (auto: at
+    # the first growth).
     fit_box_at: int = 0
     # Grid models: start the occupancy grid from the dataset's occupancy prior (Blender's
     # geometry, occupancy_prior.npz) and never mark a cell it leaves out: "surface" (cells

@@ -46,7 +46,7 @@ class MarchConfig:
 # Fitting the box: the bounds of the pieces of occupied cells of at least FIT_MIN_PART of the
 # largest (floaters are small pieces apart from the scene), widened by FIT_MARGIN_CELLS cells
 # (what the occupancy grid marks at the first growth is coarse); done only where that keeps at
-# most FIT_MAX_KEPT of the volume.
+# most FIT_MAX_KEPT of the volume (a fitted box: REFIT_MAX_KEPT of it).
 FIT_MIN_PART = 0.01
 # The occupancy grid's refresh reads the density at every vertex: 10-16 ns a cell on 2 CPU cores
 # (262 ms at 255³ cells), a fifth of a 75 ms step when done every 16 steps. Refreshed at most
@@ -55,6 +55,9 @@ FIT_MIN_PART = 0.01
 OCCUPANCY_CELLS_A_STEP = 250_000
 FIT_MARGIN_CELLS = 2
 FIT_MAX_KEPT = 0.75
+# A fitted box is fitted again after each later growth, where that keeps at most this share of
+# it: the finer grid's occupancy bounds the scene closer (and an older field has fewer floaters).
+REFIT_MAX_KEPT = 0.9
 
 
 class MarchedModel(Model):
@@ -177,9 +180,9 @@ class MarchedModel(Model):
                 ParameterGroup("networks", networks, "network_learning_rate")]
 
     def before_step(self, iteration: int, scheduled: int, steps_left: float | None = None) -> bool:
-        """Fitting the box at ``fit_box_at`` (tried again after each later growth while the
-        field still fills too much of it: a young field's floaters can span the box at the
-        first), the field's schedule (a grid's upsampling), then the occupancy grid's refresh
+        """Fitting the box at ``fit_box_at`` (tried again at the step after each later growth:
+        a young field's floaters can span the box at the first, and a finer grid bounds the
+        scene closer), the field's schedule (a grid's upsampling), then the occupancy grid's refresh
         (every ``occupancy_every`` steps taken, or fewer on a large grid:
         ``occupancy_refresh_every``)."""
         fit_at = self.march.fit_box_at
@@ -189,7 +192,7 @@ class MarchedModel(Model):
         if grown:
             self._fit_sampling_to_field()
             self.update_occupancy()
-            self._fit_tried = self.box_fitted  # a box not narrowed yet is tried again at the next step
+            self._fit_tried = False  # the box is fitted (again) at the next step, from the grown grid's occupancy
         if iteration >= self.march.occupancy_warmup and iteration % self.occupancy_refresh_every() == 0:
             self.update_occupancy()
         return fitted or grown
@@ -202,8 +205,8 @@ class MarchedModel(Model):
     def fit_box(self) -> bool:
         """Narrow the field to the box around its occupied cells (TensoRF's shrinking): its
         cells then shrink with the box, so the same parameters hold finer detail where the
-        scene is. Tried at ``fit_box_at`` and after each later growth until it narrows; True
-        when the field changed."""
+        scene is. Tried at ``fit_box_at`` and after each later growth (a fitted box again where
+        that keeps at most ``REFIT_MAX_KEPT`` of it); True when the field changed."""
         self._fit_tried = True
         # The cells rendering keeps (able to reach render_alpha_threshold in a step): the
         # training grid's also keep the faint haze a young field has everywhere.
@@ -211,18 +214,22 @@ class MarchedModel(Model):
         if bounds is None:
             return False
         kept = math.prod(hi - lo for lo, hi in zip(bounds.box_min, bounds.box_max)) / math.prod(self.field.extent)
-        if kept > FIT_MAX_KEPT:
-            self._note = (f"box kept: what the field has filled spans {kept:.0%} of its volume "
-                          f"(it is narrowed where that is at most {FIT_MAX_KEPT:.0%})")
+        limit = REFIT_MAX_KEPT if self.box_fitted else FIT_MAX_KEPT
+        if kept > limit:
+            if not self.box_fitted:
+                self._note = (f"box kept: what the field has filled spans {kept:.0%} of its volume "
+                              f"(it is narrowed where that is at most {FIT_MAX_KEPT:.0%})")
             return False
+        built = math.prod(self.field.built_extent)
         if not self.field.fit_box(bounds):
             return False
+        again = " again" if self.box_fitted else ""
         self.box_fitted = True
         self._fit_sampling_to_field()
         self.update_occupancy()
         sides = " × ".join(f"{hi - lo:.2f}" for lo, hi in zip(bounds.box_min, bounds.box_max))
-        self._note = (f"box fitted to the occupied cells: {sides} ({kept:.0%} of the volume), "
-                      f"grids {' × '.join(map(str, self.field.vertices))} vertices")
+        self._note = (f"box fitted{again} to the occupied cells: {sides} ({math.prod(self.field.extent) / built:.0%} "
+                      f"of the built box), grids {' × '.join(map(str, self.field.vertices))} vertices")
         return True
 
     def coarse_detail(self) -> float | None:

@@ -6,8 +6,10 @@ run's ``config.json``:
 
 - model: the factorised grids, measured against the other models at equal time (the plenoxels
   preset's sparse voxel grid lost by 5.3 dB on lego at 10 minutes on 2 CPU cores);
+- rays a step: 2 048, measured against 1 024 and 4 096 on lego at 2 and 10 minutes;
 - bounds: the scene's box (from the profile) limits every ray and the grids; without it the
-  box is a guess, narrowed at the first growth to what the field has filled (``fit_box_at``);
+  box is a guess, narrowed at the first growth to what the field has filled (``fit_box_at``) and
+  again after each later growth, as the finer grid bounds the scene closer;
 - view dependence: no glossy, metallic, specular, transmissive, clearcoat or sheen material
   → colour takes no direction input;
 - detail: the grid needs no vertex finer than the footprint of a pixel on the scene
@@ -32,7 +34,7 @@ import torch
 from ..configs.train_config import TrainConfig
 from ..core.scene_bounds import SceneBounds, vertices_for
 from ..data.dataset import DatasetSplit
-from ..models.marched import FIT_MAX_KEPT
+from ..models.marched import FIT_MAX_KEPT, REFIT_MAX_KEPT
 from .decision import decide
 
 MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
@@ -50,6 +52,14 @@ MODEL_REASON = (
     "the factorised grids (the fast preset's model), measured against the plenoxels preset (a sparse voxel grid "
     "of density and harmonics, no network) on lego at 800×800 on 2 CPU cores, they scored 28.04 dB after 2 minutes "
     "against 21.01, and 31.88 after 10 against 26.58 (docs/benchmarks_lego.md, \"Plenoxels\")")
+# Rays a step, chosen by measurement on lego at 800×800 on 2 CPU cores (docs/benchmarks_lego.md,
+# "Rays a step"): a step's fixed costs are shared by more rays.
+RAYS_PER_STEP = 2048
+RAYS_REASON = (
+    "measured on lego at 800×800 on 2 CPU cores, with the box fitted again at each growth: 2 048 rays a step scored "
+    "28.20 dB after 2 minutes against 1 024's 27.99, and 33.04 after 10 against 32.58 (they move 1.2-1.4 times "
+    "as many rays a second: a step's fixed costs are shared by more rays); 4 096 lost at 2 minutes (25.65 dB "
+    "against 28.25 before the refit) (docs/benchmarks_lego.md, \"Rays a step\")")
 # occupancy_prior's value for "PRIOR_KIND where the dataset has a prior, else none".
 AVAILABLE_PRIOR = "available"
 
@@ -98,6 +108,8 @@ def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profil
         return value
 
     model = choose("model", "model", MODEL, MODEL_REASON)
+    rays = choose("rays", "rays_per_batch", *((RAYS_PER_STEP, RAYS_REASON) if model == MODEL else (
+        base.rays_per_batch, f"the preset's: {RAYS_PER_STEP} was measured for the factorised grids only")))
 
     if profile is not None and isinstance(profile.get("view_dependent"), bool):
         dependent = profile["view_dependent"]
@@ -141,7 +153,8 @@ def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profil
     grid = dataclasses.replace(base.grid, resolution=resolution, initial_resolution=initial,
                                upsample_iterations=schedule, view_dependent=view_dependent,
                                last_growth_min_steps=last_growth_min_steps, finest_cell=footprint)
-    config = base.with_settings(preset="auto", model=model, grid=grid, random_background=random_background,
+    config = base.with_settings(preset="auto", model=model, rays_per_batch=rays, grid=grid,
+                                random_background=random_background,
                                 occupancy_prior=prior, fit_box_at=fit_box_at)
     diagonal = math.sqrt(sum(side ** 2 for side in sides))
     decisions["samples"] = {
@@ -161,4 +174,5 @@ def _box_fit(profile: dict | None, schedule: tuple[int, ...], cubic_cells: bool,
         f"the box is a guess (no scene bounds in the dataset): at the first growth (scheduled step {schedule[0]}) "
         f"the grids narrow to the box around the pieces of what the field has filled (floaters left out), if that "
         f"keeps at most {FIT_MAX_KEPT:.0%} of the volume, with as many cells as before, so their cells shrink with "
-        f"it (not below the pixel footprint, {footprint:.4f})")
+        f"it (not below the pixel footprint, {footprint:.4f}); after each later growth, again, where the finer "
+        f"grid's occupancy keeps at most {REFIT_MAX_KEPT:.0%} of the box")
