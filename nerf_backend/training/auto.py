@@ -6,7 +6,8 @@ run's ``config.json``:
 
 - model: the factorised grids, measured against the other models at equal time (the plenoxels
   preset's sparse voxel grid lost by 5.3 dB on lego at 10 minutes on 2 CPU cores);
-- rays a step: 2 048, measured against 1 024 and 4 096 on lego at 2 and 10 minutes;
+- rays a step: 2 048, measured against 1 024 and 4 096 on lego at 2 and 10 minutes, and against
+  1 024 on the shared real scenes at 100×100;
 - bounds: the scene's box (from the profile) limits every ray and the grids; without it the
   box is a guess, narrowed at the first growth to what the field has filled (``fit_box_at``) and
   again after each later growth, as the finer grid bounds the scene closer;
@@ -52,14 +53,15 @@ MODEL_REASON = (
     "the factorised grids (the fast preset's model), measured against the plenoxels preset (a sparse voxel grid "
     "of density and harmonics, no network) on lego at 800×800 on 2 CPU cores, they scored 28.04 dB after 2 minutes "
     "against 21.01, and 31.88 after 10 against 26.58 (docs/benchmarks_lego.md, \"Plenoxels\")")
-# Rays a step, chosen by measurement on lego at 800×800 on 2 CPU cores (docs/benchmarks_lego.md,
-# "Rays a step"): a step's fixed costs are shared by more rays.
+# Rays a step, chosen by measurement on 2 CPU cores (docs/benchmarks_lego.md, "Rays a step"): a
+# step's fixed costs are shared by more rays.
 RAYS_PER_STEP = 2048
 RAYS_REASON = (
     "measured on lego at 800×800 on 2 CPU cores, with the box fitted again at each growth: 2 048 rays a step scored "
-    "28.20 dB after 2 minutes against 1 024's 27.99, and 33.04 after 10 against 32.58 (they move 1.2-1.4 times "
+    "28.20 dB after 2 minutes against 1 024's 27.99, and 33.04 after 10 against 32.58 (they move 1.2-1.5 times "
     "as many rays a second: a step's fixed costs are shared by more rays); 4 096 lost at 2 minutes (25.65 dB "
-    "against 28.25 before the refit) (docs/benchmarks_lego.md, \"Rays a step\")")
+    "against 28.25 before the refit); on the three shared real scenes at 100×100, 2 048 scored 0.19-0.42 dB more "
+    "after 2 minutes (docs/benchmarks_lego.md, \"Rays a step\" and \"The box fitted again\")")
 # occupancy_prior's value for "PRIOR_KIND where the dataset has a prior, else none".
 AVAILABLE_PRIOR = "available"
 
