@@ -1,4 +1,13 @@
+import os
 import sys
+
+# OpenMP's threads spin for a while after each of PyTorch's operations, waiting for the next;
+# the compiled kernels (kernels/) run on threads of their own in between, and the spinning took
+# their cores. Sleeping threads instead, measured on lego at 800×800 on 2 cores: a rendered view
+# 0.86-0.96 → 0.64-0.65 s, `eval` 13.3 → 12.2 s, two minutes of training 1 892 and 1 812 steps →
+# 2 102 and 2 201 (docs/benchmarks_lego.md). Set before torch loads OpenMP; the user's own
+# setting wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 try:
     import torch  # noqa: F401  (checked first: without it the error would be a traceback)

@@ -79,7 +79,8 @@ BF16_MIN_SPEEDUP = 1.5
 
 
 def colour_network_dtype(device: torch.device) -> torch.dtype:
-    """The type inference's colour network computes in on ``device``: bfloat16 on a CPU whose
+    """The type inference's colour network computes in on ``device`` where it runs through
+    PyTorch (the CPU's compiled colour pass, ``compiled_colour``, is float32): bfloat16 on a CPU whose
     bfloat16 products of the network's shape are measured ``BF16_MIN_SPEEDUP`` times faster
     than float32's, float32 elsewhere (GPUs included: their colour pass is not what a view
     waits on)."""

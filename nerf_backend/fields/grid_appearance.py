@@ -10,6 +10,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..core.field_functions import RayColourFn
+from ..field_components.compiled_colour import compiled_ray_colour
 from ..field_components.encodings import PositionalEncoding
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
 from .base import SampleCost, mlp_flops
@@ -62,6 +63,9 @@ class GridAppearance:
         appearance = self.config.appearance_dims
         if not self.config.view_dependent or first.in_features != appearance + self.direction_encoding.out_dims:
             return super().ray_colour(directions, dtype)  # no direction, or features of the field's own besides
+        compiled = compiled_ray_colour(self, directions)
+        if compiled is not None:  # the CPU's compiled pass, in float32 whatever dtype
+            return compiled
         with torch.no_grad():
             per_ray = F.linear(self.direction_encoding(directions), first.weight[:, appearance:], first.bias).to(dtype)
             grid_weight = (first.weight[:, :appearance] @ self.appearance_basis.weight).t().to(dtype)

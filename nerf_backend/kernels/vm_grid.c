@@ -346,3 +346,4 @@ static inline int density_readable(const DensitySource *density) {
 }
 
 #include "train_march.h"
+#include "colour_network.h"

@@ -1,0 +1,116 @@
+"""Inference's colour of packed samples in one compiled pass on the CPU
+(``kernels/colour_network.h``): the appearance grid's read and the colour network's three
+layers together, tiles of samples through each layer, in float32.
+
+Through PyTorch the same colour is a compiled read of the grid, then three products (oneDNN's,
+in bfloat16 where the CPU has it) with passes over memory between them: conversions, ReLU,
+the per-ray rows gathered. Here no sample's features or hidden values leave the caches.
+
+It applies on the CPU, in float32, where a C compiler is found, for the network
+``GridAppearance`` builds (three layers, ``COMPILED_WIDTH`` wide) over a grid whose channels
+are whole vectors; elsewhere the colour is PyTorch's (``GridAppearance.ray_colour``), which
+computes the same sums (tests/test_compiled_colour.py).
+
+Example (where a C compiler is found):
+    >>> import torch
+    >>> from nerf_backend.core.scene_bounds import SceneBounds
+    >>> from nerf_backend.fields.grid_field import GridField, GridFieldConfig
+    >>> field = GridField(GridFieldConfig(initial_resolution=16, resolution=16), SceneBounds((-1.0,) * 3, (1.0,) * 3))
+    >>> directions = torch.nn.functional.normalize(torch.randn(4, 3), dim=1)
+    >>> colour = compiled_ray_colour(field, directions)
+    >>> points, ray = torch.rand(10, 3) * 2 - 1, torch.randint(0, 4, (10,))
+    >>> colour is None or bool(torch.allclose(colour(points, ray), field.colour(points, directions[ray]), atol=1e-5))
+    True
+"""
+
+from __future__ import annotations
+
+import ctypes
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from ..core.field_functions import RayColourFn
+from .compiled_grid import CHANNEL_BLOCK, _Component, _components, _rows_in_place, compiled_grid_library
+
+# colour_network.h's HIDDEN: a network of another width colours through PyTorch.
+COMPILED_WIDTH = 64
+
+
+class _ColourNetwork(ctypes.Structure):
+    _fields_ = [("grid", _Component * 3), ("per_ray", ctypes.c_void_p), ("w1", ctypes.c_void_p),
+                ("w2", ctypes.c_void_p), ("b2", ctypes.c_void_p), ("w3", ctypes.c_void_p), ("b3", ctypes.c_void_p),
+                ("box_min", ctypes.c_float * 3), ("scale", ctypes.c_float * 3), ("features", ctypes.c_int32),
+                ("hidden", ctypes.c_int32)]
+
+
+def _linear_layers(network: nn.Sequential) -> list[nn.Linear] | None:
+    """The network's three layers where it is ``Linear, ReLU, Linear, ReLU, Linear`` of the
+    compiled width, ending in 3 colours; else None."""
+    kinds = [type(layer) for layer in network]
+    if kinds != [nn.Linear, nn.ReLU, nn.Linear, nn.ReLU, nn.Linear]:
+        return None
+    first, second, third = network[0], network[2], network[4]
+    if (first.out_features, second.in_features, second.out_features, third.in_features, third.out_features) != (
+            COMPILED_WIDTH,) * 4 + (3,) or any(layer.bias is None for layer in (first, second, third)):
+        return None
+    return [first, second, third]
+
+
+class CompiledRayColour:
+    """A ``RayColourFn`` for rays of ``directions``: ``colour(x [P, 3], ray [P]) -> [P, 3]``,
+    computed by the compiled pass. Holds the tensors the pass reads."""
+
+    def __init__(self, field, directions: Tensor, layers: list[nn.Linear], library: ctypes.CDLL) -> None:
+        first, second, third = layers
+        appearance = field.config.appearance_dims
+        grid = field.appearance_grid
+        with torch.no_grad():
+            self._kept = [
+                F.linear(field.direction_encoding(directions.float()), first.weight[:, appearance:],
+                         first.bias).contiguous(),
+                (first.weight[:, :appearance] @ field.appearance_basis.weight).t().contiguous(),
+                second.weight.t().contiguous(), second.bias.detach().contiguous(),
+                third.weight.detach().contiguous(), third.bias.detach().contiguous(),
+            ]
+            self._tables = [_rows_in_place(p) for pair in zip(grid.planes, grid.lines) for p in pair]
+            box_min = field.box_min.float().tolist()
+            scale = (2.0 / (field.box_max - field.box_min).float()).tolist()
+        network = _ColourNetwork()
+        network.grid = _components([grid], self._tables, None, None, None, None)
+        (network.per_ray, network.w1, network.w2, network.b2, network.w3,
+         network.b3) = [tensor.data_ptr() for tensor in self._kept]
+        network.box_min = (ctypes.c_float * 3)(*box_min)
+        network.scale = (ctypes.c_float * 3)(*scale)
+        network.features, network.hidden = grid.out_dims, COMPILED_WIDTH
+        self._network = network
+        self._library = library
+
+    def __call__(self, x: Tensor, ray: Tensor) -> Tensor:
+        x = x.float().contiguous()
+        ray = ray.to(torch.int64).contiguous()
+        rgb = x.new_empty((x.shape[0], 3))
+        if x.shape[0]:
+            status = self._library.colour_samples(
+                ctypes.byref(self._network), ctypes.c_void_p(x.data_ptr()), ctypes.c_void_p(ray.data_ptr()),
+                ctypes.c_int64(x.shape[0]), ctypes.c_void_p(rgb.data_ptr()), ctypes.c_int64(torch.get_num_threads()))
+            if status != 0:  # compiled_ray_colour keeps every call within the pass's limits
+                raise RuntimeError(f"colour_network.h refused the call (status {status})")
+        return rgb
+
+
+def compiled_ray_colour(field, directions: Tensor) -> RayColourFn | None:
+    """The compiled colour pass for ``field`` (a ``GridAppearance`` whose network takes the grid's
+    features and the direction's encoding) and rays of ``directions``; None where it does not
+    apply (see the module's notes)."""
+    grid = field.appearance_grid
+    layers = _linear_layers(field.colour_mlp)
+    if (layers is None or directions.device.type != "cpu" or grid.channels % CHANNEL_BLOCK
+            or any(p.dtype != torch.float32 or p.device.type != "cpu" for p in field.parameters())):
+        return None
+    library = compiled_grid_library()
+    if library is None:
+        return None
+    library.colour_samples.restype = ctypes.c_int
+    return CompiledRayColour(field, directions, layers, library)

@@ -1,0 +1,160 @@
+#ifndef COLOUR_NETWORK_H
+#define COLOUR_NETWORK_H
+/* Included by vm_grid.c (after Component, forward_sample and prefetch_rows): inference's colour
+ * of packed samples in one compiled pass, the grid field's appearance grid read and its colour
+ * network run together (nerf_backend/field_components/compiled_colour.py).
+ *
+ * The network is GridAppearance.ray_colour's: hidden = relu(per_ray[ray] + features · W1),
+ * hidden = relu(b2 + hidden · W2), colour = sigmoid(b3 + hidden · W3), where per_ray holds the
+ * viewing direction's share of the first layer (and its bias), computed once a ray, and W1 has
+ * the appearance basis folded in. In float32, so it matches PyTorch's float32 sums to rounding.
+ *
+ * Samples go through in tiles of TILE: each weight row is loaded once a tile and multiplied
+ * into every sample of it, the tile's sums held in vector registers (a sample at a time, every
+ * row was loaded for one sample's few multiply-adds, and the pass ran slower than oneDNN's
+ * bfloat16 products with PyTorch's passes around them). */
+
+/* Multiply-adds as single fused instructions (GCC's -std=c99 keeps them apart; Clang fuses
+ * them by default): the layers are nothing else. */
+#pragma GCC optimize("fp-contract=fast")
+
+#define HIDDEN 64                   /* the network's width: other widths colour through PyTorch */
+#define LANES 16
+#define HIDDEN_VECTORS (HIDDEN / LANES)
+#define MAX_FEATURES (MAX_TASKS * 64)
+/* Samples a tile: their sums (TILE × HIDDEN_VECTORS vectors) and one row of weights must fit
+ * the vector registers: 32 of 16 floats with AVX-512, 16 of 8 floats with AVX2 or NEON's 32 of 4
+ * (a 16-float vector is two or four registers there). */
+#if defined(__AVX512F__)
+#define TILE 6
+#else
+#define TILE 2
+#endif
+
+typedef float wide __attribute__((vector_size(LANES * sizeof(float))));
+typedef int32_t wide_mask __attribute__((vector_size(LANES * sizeof(int32_t))));
+
+static inline wide load_wide(const float *p) { wide v; memcpy(&v, p, sizeof v); return v; }
+static inline void store_wide(float *p, wide v) { memcpy(p, &v, sizeof v); }
+static inline wide splat_wide(float x) {  /* written out: a loop of lane stores became masked loads */
+    wide v = {x, x, x, x, x, x, x, x, x, x, x, x, x, x, x, x};
+    return v;
+}
+static inline wide relu_wide(wide v) {
+    return (wide)((wide_mask)v & (v > splat_wide(0.0f)));  /* C's vectors have no lane-wise ?: */
+}
+
+typedef struct {
+    Component grid[3];      /* the appearance grid's components (their `features` unused) */
+    const float *per_ray;   /* [rays, HIDDEN] */
+    const float *w1;        /* [features, HIDDEN]: row k multiplies feature k */
+    const float *w2;        /* [HIDDEN, HIDDEN] */
+    const float *b2;        /* [HIDDEN] */
+    const float *w3;        /* [3, HIDDEN]: row c gives colour channel c */
+    const float *b3;        /* [3] */
+    float box_min[3];
+    float scale[3];         /* normalised x = (x - box_min) * scale - 1 */
+    int32_t features;       /* the grid's features: 3 × its channels */
+    int32_t hidden;         /* HIDDEN, checked */
+} ColourNetwork;
+
+/* Sums of one layer for a tile: sums[t] += Σ_k inputs[t][k] · weights[k] (rows of HIDDEN). */
+static inline void layer_tile(wide sums[TILE][HIDDEN_VECTORS], const float *inputs, int64_t input_stride,
+                              const float *weights, int32_t count) {
+    for (int32_t k = 0; k < count; ++k) {
+        wide row[HIDDEN_VECTORS];
+        for (int j = 0; j < HIDDEN_VECTORS; ++j) row[j] = load_wide(weights + (int64_t)k * HIDDEN + j * LANES);
+        for (int t = 0; t < TILE; ++t) {
+            const wide x = splat_wide(inputs[t * input_stride + k]);
+            for (int j = 0; j < HIDDEN_VECTORS; ++j) sums[t][j] += x * row[j];
+        }
+    }
+}
+
+static inline float sigmoid(float x) { return 1.0f / (1.0f + expf(-x)); }
+
+typedef struct {
+    const ColourNetwork *net;
+    const float *x;
+    const int64_t *ray;
+    float *rgb;
+    int64_t begin, end;
+} ColourWork;
+
+static void *colour_work(void *arg) {
+    const ColourWork *w = (const ColourWork *)arg;
+    const ColourNetwork *net = w->net;
+    const int32_t F = net->features;
+    float features[TILE][MAX_FEATURES];
+    float hidden[TILE][HIDDEN];
+    float normalised[TILE][3];
+    for (int64_t first = w->begin; first < w->end; first += TILE) {
+        const int64_t count = w->end - first < TILE ? w->end - first : TILE;
+        int64_t ray[TILE];
+        /* A short last tile repeats its last sample (computed, not written). */
+        for (int t = 0; t < TILE; ++t) {
+            const int64_t p = first + (t < count ? t : count - 1);
+            ray[t] = w->ray[p];
+            for (int a = 0; a < 3; ++a) normalised[t][a] = (w->x[3 * p + a] - net->box_min[a]) * net->scale[a] - 1.0f;
+        }
+        if (first + TILE < w->end)  /* the next tile's first sample's rows, asked of memory now */
+            for (int i = 0; i < 3; ++i) {
+                float ahead[3];
+                for (int a = 0; a < 3; ++a)
+                    ahead[a] = (w->x[3 * (first + TILE) + a] - net->box_min[a]) * net->scale[a] - 1.0f;
+                prefetch_rows(&net->grid[i], ahead, 0);
+            }
+        for (int t = 0; t < TILE; ++t) {
+            int32_t column = 0;
+            for (int i = 0; i < 3; ++i) {
+                forward_sample(&net->grid[i], normalised[t], features[t] + column);
+                column += net->grid[i].channels;
+            }
+        }
+        wide sums[TILE][HIDDEN_VECTORS];
+        for (int t = 0; t < TILE; ++t)
+            for (int j = 0; j < HIDDEN_VECTORS; ++j) sums[t][j] = load_wide(net->per_ray + ray[t] * HIDDEN + j * LANES);
+        layer_tile(sums, &features[0][0], MAX_FEATURES, net->w1, F);
+        for (int t = 0; t < TILE; ++t)
+            for (int j = 0; j < HIDDEN_VECTORS; ++j) store_wide(hidden[t] + j * LANES, relu_wide(sums[t][j]));
+        for (int t = 0; t < TILE; ++t)
+            for (int j = 0; j < HIDDEN_VECTORS; ++j) sums[t][j] = load_wide(net->b2 + j * LANES);
+        layer_tile(sums, &hidden[0][0], HIDDEN, net->w2, HIDDEN);
+        for (int t = 0; t < count; ++t) {
+            wide h[HIDDEN_VECTORS];
+            for (int j = 0; j < HIDDEN_VECTORS; ++j) h[j] = relu_wide(sums[t][j]);
+            for (int c = 0; c < 3; ++c) {
+                wide dot = h[0] * load_wide(net->w3 + c * HIDDEN);
+                for (int j = 1; j < HIDDEN_VECTORS; ++j) dot += h[j] * load_wide(net->w3 + c * HIDDEN + j * LANES);
+                float sum = net->b3[c];
+                for (int i = 0; i < LANES; ++i) sum += dot[i];
+                w->rgb[3 * (first + t) + c] = sigmoid(sum);
+            }
+        }
+    }
+    return NULL;
+}
+
+/* rgb [points, 3] = the colour of each sample x [points, 3] (world space) of ray ray[p], on
+ * `threads` threads over the samples. 0, or below 0 where the network is not one this pass
+ * takes (the caller colours through PyTorch). */
+int colour_samples(const ColourNetwork *net, const float *x, const int64_t *ray, int64_t points, float *rgb,
+                   int64_t threads) {
+    if (net->hidden != HIDDEN || net->features < 1 || net->features > MAX_FEATURES) return -1;
+    int32_t features = 0;
+    for (int i = 0; i < 3; ++i) {
+        if (net->grid[i].channels < 1 || net->grid[i].channels % BLOCK != 0) return -2;
+        features += net->grid[i].channels;
+    }
+    if (features != net->features) return -3;
+    threads = clamp_threads(threads, (points + 4095) / 4096);
+    ColourWork work[MAX_THREADS];
+    for (int64_t t = 0; t < threads; ++t) {
+        ColourWork item = {net, x, ray, rgb, points * t / threads, points * (t + 1) / threads};
+        work[t] = item;
+    }
+    run_all(colour_work, work, sizeof work[0], threads);
+    return 0;
+}
+
+#endif
