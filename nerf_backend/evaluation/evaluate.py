@@ -147,11 +147,12 @@ def evaluate_run(run_path: Path, split: str, device: torch.device, lpips_weights
     tools = metric_tools(lpips_weights, lpips_linear, device)
     scored = None
     if not renders_are_current(run, split):
-        # Each view is scored as soon as it is written, beside the next view's render.
+        # Each view is written, then scored, beside the next view's render (written in the main
+        # thread, its PNG and EXR took 0.7 s of lego's 13 views with nothing else running).
         with _scorer() as pool:
             pending: list[Future] = []
             render_split(run, split, device, chunk=chunk, progress=progress, dataset_split=dataset_split,
-                         on_view=lambda index: pending.append(
+                         writer=pool, on_view=lambda index: pending.append(
                              pool.submit(score_view, dataset_split, run.renders_dir(split), tools, index)))
             scored = [done.result() for done in pending]
     metrics = score_renders(dataset_split, run.renders_dir(split), tools, scored)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import time
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import Callable
 
@@ -43,12 +44,13 @@ def view_stem(image_path: Path) -> str:
 
 def render_split(run: RunFolder, split: str, device: torch.device, chunk: int | None = None,
                  progress: bool = True, scale: float = 1.0, dataset_split: DatasetSplit | None = None,
-                 on_view: Callable[[int], None] | None = None) -> Path:
+                 on_view: Callable[[int], None] | None = None, writer: Executor | None = None) -> Path:
     """Render every view of ``split`` with the run's latest checkpoint; returns the folder
     (``RUN/renders/SPLIT``, or ``RUN/renders/SPLIT_xSCALE`` at ``scale`` times the dataset's
     resolution, so the renders that ``eval`` scores keep their size). ``dataset_split``: the
     split, where the caller has read it already; ``on_view(index)``: called once each view's
-    files are written.
+    files are written; ``writer``: an executor that writes each view while the next renders
+    (``render_poses``).
 
     The folder's ``renders.json`` records the checkpoint iteration, so stale renders (from
     before the run trained further) are recognised, and the seconds each view took."""
@@ -67,7 +69,7 @@ def render_split(run: RunFolder, split: str, device: torch.device, chunk: int | 
 
     start = time.perf_counter()
     render_poses(model, intrinsics, dataset_split.poses, stems, ray_bounds, out_dir,
-                 chunk=chunk, on_view=view_done)
+                 chunk=chunk, on_view=view_done, writer=writer)
     bar.close()
     write_json(out_dir / RENDERS_RECORD, {
         "split": split, "iteration": state["iteration"], "views": stems, "size": [intrinsics.width, intrinsics.height],

@@ -3,6 +3,7 @@ whatever the resolution."""
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -64,11 +65,24 @@ def save_rendered(image: RenderedImage, out_dir: Path, stem: str) -> Path:
 def render_poses(
     model: Model, intrinsics: Intrinsics, poses: Tensor, stems: list[str], ray_bounds: RayBounds,
     out_dir: Path, chunk: int | None = None, on_view: Callable[[int], None] | None = None,
+    writer: Executor | None = None,
 ) -> list[Path]:
-    """Render and save every pose; ``on_view(i)`` is called after each (progress)."""
-    paths = []
+    """Render and save every pose; ``on_view(i)`` is called once view ``i``'s files are written.
+    ``writer``: an executor that writes each view (then calls ``on_view``) while the next one
+    renders; every view is written when this returns."""
+    paths, writes = [], []
     for i, (pose, stem) in enumerate(zip(poses, stems)):
-        paths.append(save_rendered(render_image(model, intrinsics, pose, ray_bounds, chunk), out_dir, stem))
-        if on_view is not None:
-            on_view(i)
-    return paths
+        image = render_image(model, intrinsics, pose, ray_bounds, chunk)
+        if writer is None:
+            paths.append(_save_and_tell(image, out_dir, stem, on_view, i))
+        else:
+            writes.append(writer.submit(_save_and_tell, image, out_dir, stem, on_view, i))
+    return paths + [write.result() for write in writes]
+
+
+def _save_and_tell(image: RenderedImage, out_dir: Path, stem: str, on_view: Callable[[int], None] | None,
+                   index: int) -> Path:
+    path = save_rendered(image, out_dir, stem)
+    if on_view is not None:
+        on_view(index)
+    return path
