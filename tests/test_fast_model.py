@@ -659,7 +659,7 @@ def test_ray_colour_is_each_samples_colour_along_its_ray(preset, group, settings
     # bfloat16 products are faster: devices.colour_network_dtype): the products round to 8 bits
     # of mantissa: colours within 2 % of their range, 0.3 % on average.
     import nerf_backend.fields.grid_appearance as grid_appearance
-    monkeypatch.setattr(grid_appearance, "compiled_ray_colour", lambda field, directions: None)
+    monkeypatch.setattr(grid_appearance, "compiled_ray_colour", lambda field, directions, dtype: None)
     with torch.no_grad():
         rounded = field.ray_colour(directions, torch.bfloat16)(points, ray)
     assert rounded.dtype == torch.float32

@@ -63,8 +63,8 @@ class GridAppearance:
         appearance = self.config.appearance_dims
         if not self.config.view_dependent or first.in_features != appearance + self.direction_encoding.out_dims:
             return super().ray_colour(directions, dtype)  # no direction, or features of the field's own besides
-        compiled = compiled_ray_colour(self, directions)
-        if compiled is not None:  # the CPU's compiled pass, in float32 whatever dtype
+        compiled = compiled_ray_colour(self, directions, dtype)
+        if compiled is not None:  # the CPU's compiled pass (field_components/compiled_colour.py)
             return compiled
         with torch.no_grad():
             per_ray = F.linear(self.direction_encoding(directions), first.weight[:, appearance:], first.bias).to(dtype)

@@ -12,7 +12,11 @@
  * Samples go through in tiles of TILE: each weight row is loaded once a tile and multiplied
  * into every sample of it, the tile's sums held in vector registers (a sample at a time, every
  * row was loaded for one sample's few multiply-adds, and the pass ran slower than oneDNN's
- * bfloat16 products with PyTorch's passes around them). */
+ * bfloat16 products with PyTorch's passes around them).
+ *
+ * On a CPU with AVX512-BF16 the two wide layers multiply in bfloat16 (their inputs and weights
+ * rounded to 8 bits of mantissa, the sums in float32: what oneDNN's bfloat16 products do), two
+ * products an instruction; elsewhere everything is float32. colour_precision() says which. */
 
 /* Multiply-adds as single fused instructions (GCC's -std=c99 keeps them apart; Clang fuses
  * them by default): the layers are nothing else. */
@@ -30,6 +34,15 @@
 #else
 #define TILE 2
 #endif
+
+#if defined(__AVX512F__) && defined(__AVX512BF16__)
+#include <immintrin.h>
+#define COLOUR_BF16 1
+#else
+#define COLOUR_BF16 0
+#endif
+/* Features and hidden values are rounded to bfloat16 16 at a time: the layers' inputs, padded. */
+#define PADDED(n) (((n) + 15) / 16 * 16)
 
 typedef float wide __attribute__((vector_size(LANES * sizeof(float))));
 typedef int32_t wide_mask __attribute__((vector_size(LANES * sizeof(int32_t))));
@@ -73,8 +86,55 @@ static inline void layer_tile(wide sums[TILE][HIDDEN_VECTORS], const float *inpu
 
 static inline float sigmoid(float x) { return 1.0f / (1.0f + expf(-x)); }
 
+#if COLOUR_BF16
+/* A layer's weights for the bfloat16 products: for each pair of inputs (2k, 2k + 1) and each
+ * block of 16 outputs, the 16 outputs' two weights side by side (32 bfloat16, one vector), what
+ * vdpbf16ps multiplies a broadcast pair of inputs by. Inputs past `count` weigh 0. */
+static inline uint16_t to_bf16(float f) {  /* round to nearest even (the weights are finite) */
+    uint32_t u;
+    memcpy(&u, &f, sizeof u);
+    return (uint16_t)((u + 0x7FFFu + ((u >> 16) & 1u)) >> 16);
+}
+
+static void pack_bf16(uint16_t *packed, const float *weights, int32_t count) {
+    for (int32_t pair = 0; pair < PADDED(count) / 2; ++pair)
+        for (int j = 0; j < HIDDEN_VECTORS; ++j)
+            for (int o = 0; o < LANES; ++o)
+                for (int r = 0; r < 2; ++r) {
+                    const int32_t k = 2 * pair + r;
+                    packed[((int64_t)pair * HIDDEN_VECTORS + j) * 2 * LANES + 2 * o + r] =
+                        k < count ? to_bf16(weights[(int64_t)k * HIDDEN + j * LANES + o]) : 0;
+                }
+}
+
+/* inputs [TILE][stride] floats (zero past `count` up to PADDED(count)) rounded to bfloat16,
+ * pairs [TILE][stride / 2] of them. */
+static inline void round_tile(uint32_t *pairs, const float *inputs, int64_t stride, int32_t count) {
+    for (int t = 0; t < TILE; ++t)
+        for (int32_t k = 0; k < PADDED(count); k += 16) {
+            const __m256bh rounded = _mm512_cvtneps_pbh(_mm512_loadu_ps(inputs + t * stride + k));
+            memcpy(pairs + t * (stride / 2) + k / 2, &rounded, sizeof rounded);
+        }
+}
+
+static inline void layer_tile_bf16(wide sums[TILE][HIDDEN_VECTORS], const uint32_t *pairs, int64_t stride,
+                                   const uint16_t *packed, int32_t count) {
+    for (int32_t pair = 0; pair < PADDED(count) / 2; ++pair) {
+        __m512bh row[HIDDEN_VECTORS];
+        for (int j = 0; j < HIDDEN_VECTORS; ++j)
+            row[j] = (__m512bh)_mm512_loadu_si512(packed + ((int64_t)pair * HIDDEN_VECTORS + j) * 2 * LANES);
+        for (int t = 0; t < TILE; ++t) {
+            const __m512bh x = (__m512bh)_mm512_set1_epi32((int)pairs[t * (stride / 2) + pair]);
+            for (int j = 0; j < HIDDEN_VECTORS; ++j)
+                sums[t][j] = (wide)_mm512_dpbf16_ps((__m512)sums[t][j], x, row[j]);
+        }
+    }
+}
+#endif
+
 typedef struct {
     const ColourNetwork *net;
+    const uint16_t *w1_bf16, *w2_bf16;  /* pack_bf16's, where COLOUR_BF16 */
     const float *x;
     const int64_t *ray;
     float *rgb;
@@ -88,6 +148,10 @@ static void *colour_work(void *arg) {
     float features[TILE][MAX_FEATURES];
     float hidden[TILE][HIDDEN];
     float normalised[TILE][3];
+    memset(features, 0, sizeof features);  /* the padding past F stays 0 */
+#if COLOUR_BF16
+    uint32_t pairs[TILE][MAX_FEATURES / 2];
+#endif
     for (int64_t first = w->begin; first < w->end; first += TILE) {
         const int64_t count = w->end - first < TILE ? w->end - first : TILE;
         int64_t ray[TILE];
@@ -114,12 +178,22 @@ static void *colour_work(void *arg) {
         wide sums[TILE][HIDDEN_VECTORS];
         for (int t = 0; t < TILE; ++t)
             for (int j = 0; j < HIDDEN_VECTORS; ++j) sums[t][j] = load_wide(net->per_ray + ray[t] * HIDDEN + j * LANES);
+#if COLOUR_BF16
+        round_tile(&pairs[0][0], &features[0][0], MAX_FEATURES, F);
+        layer_tile_bf16(sums, &pairs[0][0], MAX_FEATURES, w->w1_bf16, F);
+#else
         layer_tile(sums, &features[0][0], MAX_FEATURES, net->w1, F);
+#endif
         for (int t = 0; t < TILE; ++t)
             for (int j = 0; j < HIDDEN_VECTORS; ++j) store_wide(hidden[t] + j * LANES, relu_wide(sums[t][j]));
         for (int t = 0; t < TILE; ++t)
             for (int j = 0; j < HIDDEN_VECTORS; ++j) sums[t][j] = load_wide(net->b2 + j * LANES);
+#if COLOUR_BF16
+        round_tile(&pairs[0][0], &hidden[0][0], HIDDEN, HIDDEN);
+        layer_tile_bf16(sums, &pairs[0][0], HIDDEN, w->w2_bf16, HIDDEN);
+#else
         layer_tile(sums, &hidden[0][0], HIDDEN, net->w2, HIDDEN);
+#endif
         for (int t = 0; t < count; ++t) {
             wide h[HIDDEN_VECTORS];
             for (int j = 0; j < HIDDEN_VECTORS; ++j) h[j] = relu_wide(sums[t][j]);
@@ -147,14 +221,32 @@ int colour_samples(const ColourNetwork *net, const float *x, const int64_t *ray,
         features += net->grid[i].channels;
     }
     if (features != net->features) return -3;
+    if (PADDED(features) > MAX_FEATURES) return -1;
+    uint16_t *w1_bf16 = NULL, *w2_bf16 = NULL;
+#if COLOUR_BF16
+    w1_bf16 = malloc(sizeof(uint16_t) * PADDED(features) * HIDDEN);
+    w2_bf16 = malloc(sizeof(uint16_t) * HIDDEN * HIDDEN);
+    if (w1_bf16 == NULL || w2_bf16 == NULL) {
+        free(w1_bf16);
+        free(w2_bf16);
+        return -4;
+    }
+    pack_bf16(w1_bf16, net->w1, features);
+    pack_bf16(w2_bf16, net->w2, HIDDEN);
+#endif
     threads = clamp_threads(threads, (points + 4095) / 4096);
     ColourWork work[MAX_THREADS];
     for (int64_t t = 0; t < threads; ++t) {
-        ColourWork item = {net, x, ray, rgb, points * t / threads, points * (t + 1) / threads};
+        ColourWork item = {net, w1_bf16, w2_bf16, x, ray, rgb, points * t / threads, points * (t + 1) / threads};
         work[t] = item;
     }
     run_all(colour_work, work, sizeof work[0], threads);
+    free(w1_bf16);
+    free(w2_bf16);
     return 0;
 }
+
+/* 16 where the wide layers multiply in bfloat16, 32 where in float32. */
+int colour_precision(void) { return COLOUR_BF16 ? 16 : 32; }
 
 #endif
