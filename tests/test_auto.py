@@ -148,3 +148,22 @@ def test_auto_takes_the_rays_a_step_its_measurements_chose_for_the_grids():
     chosen = with_overrides(PRESETS["auto"], ["model=plenoxels"])
     config, decisions = auto_config(chosen, _split(), BOX, PROFILE, frozenset({"model"}))
     assert config.rays_per_batch == PRESETS["auto"].rays_per_batch and "factorised grids only" in decisions["rays"]["reason"]
+
+
+def test_a_budget_of_thirty_minutes_or_more_grows_a_finer_grid():
+    """Where a pixel asks for more vertices than the grids may have, the limit is 256 along the
+    longest side, and 384 under a budget of 30 minutes or more (measured on lego: 35.00 dB after
+    30 minutes against 256's 34.54, the same after 10); the reason says which and why."""
+    cube = SceneBounds((-1.5,) * 3, (1.5,) * 3)
+    poses = torch.eye(4).repeat(4, 1, 1)
+    poses[:, 2, 3] = 4.0
+    fine = DatasetSplit("train", Intrinsics(800, 800, 1111.1, 1111.1, 400.0, 400.0), poses,
+                        torch.full((4, 800, 800, 4), 255, dtype=torch.uint8), [])  # a pixel: 0.0036 units
+    for budget, vertices in ((None, 256), (600.0, 256), (1799.0, 256), (1800.0, 384), (3600.0, 384)):
+        config, decisions = auto_config(PRESETS["auto"], fine, cube, None, budget_seconds=budget)
+        reason = decisions["grid_resolution"]["reason"]
+        assert config.grid.resolution == decisions["grid_resolution"]["value"] == vertices, budget
+        assert f"clamped to [32, {vertices}]" in reason and "35.00 dB" in reason
+    # A scene whose pixels ask for fewer vertices gets what they ask, whatever the budget.
+    for budget in (None, 3600.0):
+        assert auto_config(PRESETS["auto"], _split(), BOX, PROFILE, budget_seconds=budget)[0].grid.resolution == 112

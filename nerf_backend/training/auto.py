@@ -14,7 +14,8 @@ run's ``config.json``:
 - view dependence: no glossy, metallic, specular, transmissive, clearcoat or sheen material
   → colour takes no direction input;
 - detail: the grid needs no vertex finer than the footprint of a pixel on the scene
-  (Nyquist for the training images), so its resolution is the box size over that footprint;
+  (Nyquist for the training images), so its resolution is the box size over that footprint,
+  up to a limit that a budget of 30 minutes or more raises (measured on lego);
 - samples: one march step per grid cell covers the depth range at that same detail;
 - time: under a time budget the grid's last growth waits for steps enough to fill it in; a
   budget too short for the final grid keeps it one growth coarser;
@@ -39,6 +40,15 @@ from ..models.marched import FIT_MAX_KEPT, REFIT_MAX_KEPT
 from .decision import decide
 
 MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
+# A budget this long grows the grid up to LONG_BUDGET_RESOLUTION instead (docs/benchmarks_lego.md,
+# "A finer grid for a longer budget"): more vertices need more steps to fill in, and make every
+# view slower to render.
+LONG_BUDGET_SECONDS = 1800.0
+LONG_BUDGET_RESOLUTION = 384
+FINEST_REASON = (
+    "measured on lego at 800×800 on 2 CPU cores: 384 vertices along the longest side scored 35.00 dB after 30 "
+    "minutes against 256's 34.54, and 33.04 after 10 as 256 did, while its views rendered 1.4 times slower "
+    "(17.0-17.4 s for 13 views against 11.7-12.3)")
 # Which of the prior's fills auto uses (measured with bench: see the README).
 PRIOR_KIND = "solid"
 # Steps a time budget must still allow (at the run's rate so far) for the grid's last growth:
@@ -74,10 +84,23 @@ def pixel_footprint(split: DatasetSplit, box: SceneBounds) -> float:
     return float(distances.mean()) / focal
 
 
-def pixel_resolution(footprint: float, sides: tuple[float, float, float], cubic_cells: bool = True) -> tuple[int, str]:
+def finest_resolution(budget_seconds: float | None) -> tuple[int, str]:
+    """The most vertices along the box's longest side auto grows its grid to within a time
+    budget (None: no budget), and why."""
+    if budget_seconds is not None and budget_seconds >= LONG_BUDGET_SECONDS:
+        return LONG_BUDGET_RESOLUTION, (f"a budget of {budget_seconds / 60:g} minutes (at least "
+                                        f"{LONG_BUDGET_SECONDS / 60:g}) grows it up to {LONG_BUDGET_RESOLUTION}: "
+                                        f"{FINEST_REASON}")
+    budget = "no time budget" if budget_seconds is None else f"a budget of {budget_seconds / 60:g} minutes"
+    return MAX_RESOLUTION, (f"{budget} (under {LONG_BUDGET_SECONDS / 60:g}) grows it up to {MAX_RESOLUTION}: "
+                            f"{FINEST_REASON}")
+
+
+def pixel_resolution(footprint: float, sides: tuple[float, float, float], cubic_cells: bool = True,
+                     most: int = MAX_RESOLUTION) -> tuple[int, str]:
     """Vertices along the box's longest side that resolve a pixel of ``footprint`` (world
     units) in a box of ``sides`` (with cubic cells: a cube's cells spread over the box), within
-    [MIN_RESOLUTION, MAX_RESOLUTION], and why."""
+    [MIN_RESOLUTION, most], and why."""
     extent = max(sides)
     per_pixel = math.ceil(extent / footprint) + 1
     reason = (f"a pixel covers {footprint:.4f} units at the scene's centre and the box is {extent:.3f} across: "
@@ -92,17 +115,19 @@ def pixel_resolution(footprint: float, sides: tuple[float, float, float], cubic_
             reason += (f"; the box is not a cube ({' × '.join(f'{side:.2f}' for side in sides)}): the "
                        f"{(per_pixel - 1) ** 3:,} cells of a {per_pixel}-vertex cube, spread over it as cubic "
                        f"cells of {cell:.4f}, give {wanted} vertices along its longest side")
-    clamped = max(MIN_RESOLUTION, min(MAX_RESOLUTION, wanted))
+    clamped = max(MIN_RESOLUTION, min(most, wanted))
     if clamped != wanted:
-        reason += f" (clamped to [{MIN_RESOLUTION}, {MAX_RESOLUTION}])"
+        reason += f" (clamped to [{MIN_RESOLUTION}, {most}])"
     return clamped, reason
 
 
 def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profile: dict | None,
-                user_set: frozenset[str] = frozenset()) -> tuple[TrainConfig, dict]:
-    """``base`` (the fast preset, with the user's ``--set`` changes) adjusted to the scene,
-    and the decisions with reasons. A setting in ``user_set`` (dotted keys given with
-    ``--set``) is the user's: auto keeps it and records what it would have chosen."""
+                user_set: frozenset[str] = frozenset(),
+                budget_seconds: float | None = None) -> tuple[TrainConfig, dict]:
+    """``base`` (the fast preset, with the user's ``--set`` changes) adjusted to the scene and
+    to the run's time budget (None: none), and the decisions with reasons. A setting in
+    ``user_set`` (dotted keys given with ``--set``) is the user's: auto keeps it and records
+    what it would have chosen."""
     decisions: dict[str, dict] = {}
 
     def choose(name: str, key: str, chosen, reason: str, **details):
@@ -125,10 +150,11 @@ def auto_config(base: TrainConfig, split: DatasetSplit, box: SceneBounds, profil
     footprint = pixel_footprint(split, box)
     sides = tuple(hi - lo for lo, hi in zip(box.box_min, box.box_max))
     extent = max(sides)
-    clamped, reason = pixel_resolution(footprint, sides, base.grid.cubic_cells)
+    most, most_reason = finest_resolution(budget_seconds)
+    clamped, reason = pixel_resolution(footprint, sides, base.grid.cubic_cells, most)
     vertices = vertices_for(clamped, sides) if base.grid.cubic_cells else (clamped,) * 3
     resolution = choose("grid_resolution", "grid.resolution", clamped,
-                        reason + f"; vertices per axis {vertices[0]}×{vertices[1]}×{vertices[2]}",
+                        reason + f"; vertices per axis {vertices[0]}×{vertices[1]}×{vertices[2]}; {most_reason}",
                         vertices=list(vertices))
     initial = min(base.grid.initial_resolution, resolution)
     schedule = base.grid.upsample_iterations if resolution > initial else ()

@@ -282,7 +282,8 @@ def _plan_run(run: RunFolder, dataset: Path, train_split: DatasetSplit, options:
     else:
         user_set = frozenset(assignment.partition("=")[0] for assignment in options.overrides)
         if config.preset == "auto":
-            config, shaped = auto_config(config, train_split, ray_bounds.box, load_scene_profile(dataset), user_set)
+            config, shaped = auto_config(config, train_split, ray_bounds.box, load_scene_profile(dataset), user_set,
+                                         schedule_seconds)
             decisions.update(shaped)
         elif config.model == "surface":
             config, shaped = surface_softness(config, train_split, ray_bounds.box, user_set)
