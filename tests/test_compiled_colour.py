@@ -69,7 +69,7 @@ def _reference_bfloat16(field: GridField, x: torch.Tensor, directions: torch.Ten
 
 @pytest.mark.parametrize("threads", [1, 2, 3])
 @pytest.mark.parametrize("count", [1, 5, 6, 7, 4099])
-def test_colours_match_pytorch_float32(threads, count, monkeypatch):
+def test_colours_match_pytorchs(threads, count, monkeypatch):
     monkeypatch.setattr(torch, "get_num_threads", lambda: threads)
     field = _field()
     generator = torch.Generator().manual_seed(count)

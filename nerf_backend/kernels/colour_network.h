@@ -7,7 +7,8 @@
  * The network is GridAppearance.ray_colour's: hidden = relu(per_ray[ray] + features · W1),
  * hidden = relu(b2 + hidden · W2), colour = sigmoid(b3 + hidden · W3), where per_ray holds the
  * viewing direction's share of the first layer (and its bias), computed once a ray, and W1 has
- * the appearance basis folded in. In float32, so it matches PyTorch's float32 sums to rounding.
+ * the appearance basis folded in. In float32 (the wide layers aside, below), so it matches
+ * PyTorch's float32 sums to rounding.
  *
  * Samples go through in tiles of TILE: each weight row is loaded once a tile and multiplied
  * into every sample of it, the tile's sums held in vector registers (a sample at a time, every
