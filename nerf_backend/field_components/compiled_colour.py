@@ -29,7 +29,6 @@ from __future__ import annotations
 import ctypes
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..core.field_functions import RayColourFn
@@ -64,14 +63,12 @@ class CompiledRayColour:
     computed by the compiled pass. Holds the tensors the pass reads."""
 
     def __init__(self, field, directions: Tensor, layers: list[nn.Linear], library: ctypes.CDLL) -> None:
-        first, second, third = layers
-        appearance = field.config.appearance_dims
+        _, second, third = layers
         grid = field.appearance_grid
         with torch.no_grad():
+            per_ray, grid_weight = field.first_layer_parts(directions)
             self._kept = [
-                F.linear(field.direction_encoding(directions.float()), first.weight[:, appearance:],
-                         first.bias).contiguous(),
-                (first.weight[:, :appearance] @ field.appearance_basis.weight).t().contiguous(),
+                per_ray.contiguous(), grid_weight.contiguous(),
                 second.weight.t().contiguous(), second.bias.detach().contiguous(),
                 third.weight.detach().contiguous(), third.bias.detach().contiguous(),
             ]

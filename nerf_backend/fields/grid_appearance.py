@@ -67,8 +67,7 @@ class GridAppearance:
         if compiled is not None:  # the CPU's compiled pass (field_components/compiled_colour.py)
             return compiled
         with torch.no_grad():
-            per_ray = F.linear(self.direction_encoding(directions), first.weight[:, appearance:], first.bias).to(dtype)
-            grid_weight = (first.weight[:, :appearance] @ self.appearance_basis.weight).t().to(dtype)
+            per_ray, grid_weight = (t.to(dtype) for t in self.first_layer_parts(directions))
             layers = [(layer.weight.t().to(dtype), layer.bias.to(dtype))
                       for layer in self.colour_mlp[1:] if isinstance(layer, nn.Linear)]
 
@@ -81,6 +80,16 @@ class GridAppearance:
             return torch.sigmoid(hidden.float())
 
         return colour
+
+    @torch.no_grad()
+    def first_layer_parts(self, directions: Tensor) -> tuple[Tensor, Tensor]:
+        """The colour MLP's first layer split for ``ray_colour`` (float32): each ray's share
+        ``[R, H]`` (its direction's encoding times those columns, plus the bias) and the grid
+        features' weights ``[3·C, H]`` with the appearance basis folded in."""
+        first = self.colour_mlp[0]
+        appearance = self.config.appearance_dims
+        per_ray = F.linear(self.direction_encoding(directions.float()), first.weight[:, appearance:], first.bias)
+        return per_ray, (first.weight[:, :appearance] @ self.appearance_basis.weight).t()
 
     def appearance_cost(self) -> SampleCost:
         """One colour sample: each channel of a component reads 4 plane and 2 line values, and
