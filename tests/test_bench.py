@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ctypes
 import json
 import os
 import re
@@ -19,6 +20,7 @@ from conftest import REPO_ROOT, run_python
 from nerf_backend.bench import Variant, ablation_order, ablation_variants, time_to_reach
 from nerf_backend.configs.presets import PRESETS
 from nerf_backend.fields.mlp_field import NerfField
+from nerf_backend.kernels.build import load_kernel
 from nerf_backend.bench.plain_nerf import PlainMLP, fourier_features
 
 
@@ -131,6 +133,32 @@ def test_bench_step_times_both_sides(tiny_demo_dataset, tmp_path):
     assert report["parameters"]["project"] == report["parameters"]["plain"]
     assert report["rays_per_batch"] == 64 and report["steps"] == 2
     assert "plain PyTorch" in result.stdout
+
+
+def test_the_compiled_line_gather_reads_every_row_it_is_given():
+    """kernels/machine_rates.c (bench-step's random-line rate) reads exactly the rows asked
+    for, on one thread or several: the sum of their first values, to float rounding."""
+    library = load_kernel("machine_rates")[0]
+    if library is None:
+        pytest.skip("no C compiler: the rate is PyTorch's gather alone")
+    library.gather_lines.restype = ctypes.c_float
+    rows = torch.arange(4096 * 16, dtype=torch.float32).view(4096, 16) / 16  # row r's first value is r
+    index = torch.randint(4096, (50_000,), generator=torch.Generator().manual_seed(0))
+    for threads in (1, 2, 3):
+        total = library.gather_lines(ctypes.c_void_p(rows.data_ptr()), ctypes.c_void_p(index.data_ptr()),
+                                     ctypes.c_int64(index.numel()), ctypes.c_int64(threads))
+        assert total == pytest.approx(float(index.double().sum()), rel=1e-5)
+
+
+def test_the_random_line_rate_is_the_faster_of_pytorch_and_the_compiled_loop(monkeypatch):
+    """A reference must stay a lower bound: the compiled loop's time counts where it is shorter
+    than PyTorch's, and PyTorch's alone where there is no compiler."""
+    import nerf_backend.bench.hardware as hardware
+    monkeypatch.setattr(hardware, "_compiled_lines_seconds", lambda rows, index, repeats: 1e-3)
+    assert hardware.measure_hardware(torch.device("cpu"), repeats=1, table_bytes=2**22)["lines_m_s"] == (
+        pytest.approx(2**20 / 1e-3 / 1e6))  # 2^20 lines in a millisecond: faster than any gather here
+    monkeypatch.setattr(hardware, "_compiled_lines_seconds", lambda rows, index, repeats: None)
+    assert 1 < hardware.measure_hardware(torch.device("cpu"), repeats=1, table_bytes=2**22)["lines_m_s"] < 2**20 / 1e-3 / 1e6
 
 
 def test_bench_step_profiles_a_marched_preset_by_stage(tiny_demo_dataset, tmp_path):
