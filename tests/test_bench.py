@@ -41,6 +41,12 @@ def test_short_bench_writes_json_table_and_plot(tiny_demo_dataset, tmp_path):
         assert 0 < variant["render_seconds_per_image"] < 60
         assert 50 < variant["peak_memory_mb"] < 20_000
         assert 0 < variant["model_size_mb"] < 100
+    for variant in report["variants"]:  # throughput over the whole run, its resumed segments included
+        final = variant["final"]
+        rays_per_batch = json.loads((out / "runs" / variant["name"] / "config.json").read_text())["config"][
+            "rays_per_batch"]
+        assert final["rays_per_second"] * final["train_seconds"] == pytest.approx(6 * rays_per_batch, rel=1e-9)
+        assert final["samples_per_second"] > 0
     slim = report["variants"][2]
     assert slim["preset"] == "preview" and slim["overrides"] == ["field.width=32"]
     # The tiny demo has a true surface: each variant's final mesh is measured against it (a
@@ -65,6 +71,42 @@ def test_short_bench_writes_json_table_and_plot(tiny_demo_dataset, tmp_path):
     with Image.open(out / "bench.png") as plot:
         assert plot.size[0] > 400 and plot.size[1] > 300
     assert "bench.json" in result.stdout
+
+
+def test_bench_at_several_budgets_trains_each_from_scratch_and_writes_the_trade(tiny_demo_dataset, tmp_path):
+    """--budget-seconds 2,4: each budget its own bench from scratch (OUT/2s, OUT/4s), the trade
+    across them in trade.{json,md,png}; the same command again keeps what is finished."""
+    out = tmp_path / "trade"
+    command = ["-m", "nerf_backend", "bench", str(tiny_demo_dataset), "--presets", "fast,auto",
+               "--budget-seconds", "4,2", "--points", "1", "--curve-views", "2", "--out", str(out)]
+    result = run_python(*command)
+    scene = tiny_demo_dataset.name
+    for budget in (2, 4):
+        bench = json.loads((out / f"{budget}s" / scene / "bench.json").read_text())
+        assert bench["budget"] == {"seconds": budget}
+        for variant in bench["variants"]:  # trained from scratch to this budget, not a point on a longer run
+            assert budget <= variant["final"]["train_seconds"] < 2 * budget
+            assert len(variant["curve"]) == 1
+    trade = json.loads((out / "trade.json").read_text())
+    assert trade["budgets_seconds"] == [2.0, 4.0]
+    [summary] = trade["scenes"]
+    assert summary["scene"] == scene and [v["variant"] for v in summary["variants"]] == ["fast", "auto"]
+    for variant in summary["variants"]:
+        for budget in ("2", "4"):
+            cell = variant["by_budget"][budget]
+            assert 5 < cell["psnr"] < 60 and cell["rays_per_second"] > 0 and cell["samples_per_second"] > 0
+    for row in summary["budgets"]:
+        cells = {v["variant"]: v["by_budget"][f"{row['budget_seconds']:g}"]["psnr"] for v in summary["variants"]}
+        assert row["best_fixed"]["variant"] == "fast"
+        assert row["auto_gap_db"] == pytest.approx(cells["auto"] - cells["fast"])
+    table = (out / "trade.md").read_text()
+    assert "| scene | variant | 2 s | 4 s |" in table and table.count(f"| {scene} | ") == 2 + 2
+    with Image.open(out / "trade.png") as plot:
+        assert plot.size[0] > 400
+    assert "trade.json" in result.stdout
+    again = run_python(*command)
+    assert again.stderr.count("finished bench kept") == 2
+    assert json.loads((out / "trade.json").read_text())["scenes"] == trade["scenes"]
 
 
 def test_curve_points_beyond_the_budget_are_refused_before_any_training(tiny_demo_dataset, tmp_path):

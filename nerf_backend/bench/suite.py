@@ -118,6 +118,7 @@ def scene_summary(dataset: SuiteDataset, bench: dict, bench_dir: Path) -> dict:
             **{f"time_to_{t:g}_db_s": variant["time_to_psnr_s"].get(f"{t:g}") for t in SUITE_THRESHOLDS_DB},
             "seconds_per_iteration": final["train_seconds"] / final["iterations"] if final["iterations"] else None,
             "iterations": final["iterations"],
+            "rays_per_second": final.get("rays_per_second"), "samples_per_second": final.get("samples_per_second"),
             "blank_psnr": blank["psnr"],
             "collapse_detected": bool(events),
             "collapse_events": events,

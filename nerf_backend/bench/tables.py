@@ -25,15 +25,18 @@ def markdown_table(report: dict) -> str:
         f"{machine_words(report['machine'])}. "
         f"{provenance_line(report.get('provenance'))}".rstrip(),
         "",
-        "| variant | iterations | test PSNR (dB) | SSIM | s to 20 / 25 / 30 dB | render s/image | peak MB | model MB |"
-        + (" Chamfer | F-score at τ |" if geometry else ""),
-        "| --- | ---: | ---: | ---: | --- | ---: | ---: | ---: |" + (" ---: | ---: |" if geometry else ""),
+        "| variant | iterations | rays/s | M samples/s | test PSNR (dB) | SSIM | s to 20 / 25 / 30 dB "
+        "| render s/image | peak MB | model MB |" + (" Chamfer | F-score at τ |" if geometry else ""),
+        "| --- | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: | ---: |" + (" ---: | ---: |" if geometry else ""),
     ]
     for v in report["variants"]:
+        final = v["final"]
         reach = " / ".join(_fmt(v["time_to_psnr_s"][f"{t:g}"], ".0f") for t in THRESHOLDS_DB)
-        shape = f" {_fmt(v['final'].get('chamfer'), '.4f')} | {_fmt(v['final'].get('f_score'), '.3f')} |"
-        lines.append(f"| {v['name']} | {v['final']['iterations']} | {v['final']['psnr']:.2f} | {v['final']['ssim']:.4f} "
-                     f"| {reach} | {v['render_seconds_per_image']:.2f} | {v['peak_memory_mb']:.0f} "
+        shape = f" {_fmt(final.get('chamfer'), '.4f')} | {_fmt(final.get('f_score'), '.3f')} |"
+        samples = final.get("samples_per_second")
+        lines.append(f"| {v['name']} | {final['iterations']} | {_fmt(final.get('rays_per_second'), '.0f')} "
+                     f"| {_fmt(None if samples is None else samples / 1e6, '.2f')} | {final['psnr']:.2f} "
+                     f"| {final['ssim']:.4f} | {reach} | {v['render_seconds_per_image']:.2f} | {v['peak_memory_mb']:.0f} "
                      f"| {v['model_size_mb']:.1f} |" + (shape if geometry else ""))
     if geometry:
         lines += ["", f"Geometry: each variant's mesh (eval --geometry, resolution {geometry['mesh_resolution']}) "
@@ -132,6 +135,67 @@ def plot_suite(summary: dict, path: Path) -> None:
     axis.set_title("Final test PSNR per scene and variant, at equal budget")
     axis.grid(axis="y", alpha=0.3)
     axis.legend(handles=handles, fontsize="small", loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    figure.tight_layout()
+    figure.savefig(path)
+    plt.close(figure)
+
+
+def _rate_words(cell: dict) -> str:
+    """A trade table's cell: PSNR, then thousands of rays and millions of samples a second."""
+    rays, samples = cell.get("rays_per_second"), cell.get("samples_per_second")
+    return (f"{cell['psnr']:.2f} · {_fmt(None if rays is None else rays / 1e3, '.1f')} · "
+            f"{_fmt(None if samples is None else samples / 1e6, '.2f')}")
+
+
+def trade_markdown(trade: dict) -> str:
+    """The trade across budgets: each scene's variants at each budget (PSNR beside rays and
+    samples a second), then the best fixed variant at each budget and auto's gap to it."""
+    budgets = [f"{b:g}" for b in trade["budgets_seconds"]]
+    lines = [
+        f"Each budget trained from scratch (`train --max-seconds`), seed {trade['seed']}, "
+        f"{machine_words(trade['machine'])}. A cell: final test PSNR (dB) · thousands of rays a second · "
+        f"millions of samples a second the field was trained at. {provenance_line(trade.get('provenance'))}".rstrip(),
+        "",
+        "| scene | variant | " + " | ".join(f"{b} s" for b in budgets) + " |",
+        "| --- | --- | " + " | ".join("---:" for _ in budgets) + " |",
+    ]
+    for scene in trade["scenes"]:
+        for variant in scene["variants"]:
+            cells = [_rate_words(variant["by_budget"][b]) if b in variant["by_budget"] else "—" for b in budgets]
+            lines.append(f"| {scene['scene']} | {variant['variant']} | " + " | ".join(cells) + " |")
+    lines += ["", "| scene | budget | best fixed variant | its PSNR (dB) | auto PSNR (dB) | auto − best fixed (dB) |",
+              "| --- | ---: | --- | ---: | ---: | ---: |"]
+    for scene in trade["scenes"]:
+        for row in scene["budgets"]:
+            best, auto = row["best_fixed"] or {}, row["auto"] or {}
+            lines.append(f"| {scene['scene']} | {row['budget_seconds']:g} s | {best.get('variant', '—')} "
+                         f"| {_fmt(best.get('psnr'), '.2f')} | {_fmt(auto.get('psnr'), '.2f')} "
+                         f"| {_fmt(row['auto_gap_db'], '+.2f')} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_trade(trade: dict, path: Path) -> None:
+    """Final test PSNR against the training budget (log scale), a line per variant, a panel per scene."""
+    plt = pyplot()
+    scenes = trade["scenes"]
+    columns = min(3, len(scenes))
+    rows = -(-len(scenes) // columns)
+    figure, axes = plt.subplots(rows, columns, figsize=(4.2 * columns + 1.5, 3.4 * rows), dpi=120, squeeze=False)
+    for axis, scene in zip(axes.flat, scenes):
+        for variant in scene["variants"]:
+            points = sorted((float(b), cell["psnr"]) for b, cell in variant["by_budget"].items())
+            axis.plot([b for b, _ in points], [p for _, p in points], marker="o", label=variant["variant"])
+        axis.set_xscale("log")
+        axis.set_xticks(trade["budgets_seconds"])
+        axis.set_xticklabels([f"{b:g}" for b in trade["budgets_seconds"]])
+        axis.set_title(scene["scene"])
+        axis.set_xlabel("training budget (s)")
+        axis.set_ylabel("test PSNR (dB)")
+        axis.grid(alpha=0.3)
+    for axis in list(axes.flat)[len(scenes):]:
+        axis.set_visible(False)
+    axes.flat[0].legend(fontsize="small")
+    figure.suptitle("Speed / accuracy: each budget trained from scratch")
     figure.tight_layout()
     figure.savefig(path)
     plt.close(figure)

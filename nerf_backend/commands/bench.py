@@ -8,7 +8,7 @@ from pathlib import Path
 
 from nerf_contract.commands import BackendFlag
 
-from ..bench import DEFAULT_PRESETS, Variant, ablation_variants, run_bench, run_suite
+from ..bench import DEFAULT_PRESETS, Variant, ablation_variants, run_bench, run_suite, run_trade
 from ..core.errors import NerfError
 from .arguments import add_device, add_seed, positive_float, positive_int
 
@@ -16,11 +16,15 @@ NAME = "bench"
 HELP = "measure the speed/accuracy trade of presets on one dataset, or on every dataset of a suite (--suite)"
 
 
+def positive_floats(text: str) -> tuple[float, ...]:
+    """Comma-separated positive numbers: ``--budget-seconds``' budgets (each trained from
+    scratch), ``--points``' points along one run."""
+    return tuple(positive_float(part) for part in text.split(",") if part.strip())
+
+
 def curve_points(text: str) -> int | tuple[float, ...]:
     """``--points``: a count, or the budgets themselves (``60,120,300``)."""
-    if "," not in text:
-        return positive_int(text)
-    return tuple(positive_float(part) for part in text.split(",") if part.strip())
+    return positive_int(text) if "," not in text else positive_floats(text)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -36,7 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="add the NeRF paper's ablations of a NeRF preset (default: paper): no PE, no view "
                              "dependence, no hierarchical sampling, 50 and 25 views, L = 5 and 15; and check their "
                              "order against the paper's")
-    parser.add_argument("--budget-seconds", type=positive_float, default=None, help="training seconds per variant")
+    parser.add_argument("--budget-seconds", type=positive_floats, default=None,
+                        help="training seconds per variant; several (60,120,300,600,1800) bench each budget from "
+                             "scratch into OUT/<budget>s and write the trade across them into OUT/trade.{json,md,png}")
     parser.add_argument(BackendFlag.ITERATIONS, type=positive_int, default=None, help="or: iterations per variant")
     parser.add_argument("--points", type=curve_points, default=6,
                         help="evaluations along each curve: a count, spaced quadratically, or the budgets themselves "
@@ -56,6 +62,18 @@ def run(args: argparse.Namespace) -> int:
     if (args.dataset is None) == (args.suite is None):
         raise NerfError("bench: give a DATASET or --suite PATH ... (not both)")
     variants = [Variant.parse(n) for n in names]
+    seconds = args.budget_seconds
+    if seconds is not None and len(seconds) > 1:
+        if args.iters is not None:
+            raise NerfError("bench: give either several --budget-seconds or --iters, not both")
+        run_trade(args.suite or [args.dataset], variants, args.out, seconds, points=args.points,
+                  curve_views=args.curve_views, seed=args.seed, device=args.device, overwrite=args.overwrite,
+                  command=args.command_line)
+        print((args.out / "trade.md").read_text(), end="")
+        print(f"written {args.out / 'trade.json'}, {args.out / 'trade.md'}, {args.out / 'trade.png'} and each "
+              f"budget's bench in {args.out}/<budget>s")
+        return 0
+    args.budget_seconds = seconds[0] if seconds else None
     if args.suite is not None:
         run_suite(args.suite, variants, args.out, args.budget_seconds, args.iters, points=args.points,
                   curve_views=args.curve_views, seed=args.seed, device=args.device, overwrite=args.overwrite,

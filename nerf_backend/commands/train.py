@@ -53,7 +53,8 @@ def run(args: argparse.Namespace) -> int:
               f"({summary.iteration} iterations, {summary.train_seconds:.1f} s); raise --iters or "
               f"--max-seconds to train on{val}; run: {args.out}")
         return 0
-    print(f"trained {summary.iteration} iterations in {summary.train_seconds:.1f} s "
+    rate = f", {summary.throughput_words()}" if summary.throughput_words() else ""
+    print(f"trained {summary.iteration} iterations in {summary.train_seconds:.1f} s{rate} "
           f"(stopped: {summary.stop_reason}){val}; run: {args.out}")
     if summary.collapse is not None:
         print(f"error: training failed: the model collapsed to the blank image "

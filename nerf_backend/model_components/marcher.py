@@ -154,7 +154,7 @@ def render_marched(
         weights, _ = render_weights(density, deltas)
         rgb = _sample_colours(lit, coloured, colour_values, weights).view(*deltas.shape, 3)
         return RenderOutput(rgb=composite_rgb(weights, rgb, background), depth=expected_depth(weights, t_mid),
-                            opacity=weights.sum(dim=-1), weights=weights, t_edges=t_edges)
+                            opacity=weights.sum(dim=-1), weights=weights, t_edges=t_edges, field_samples=lit.numel())
 
 
 def colour_worthy(weight: Tensor, ray: Tensor, rays: int) -> Tensor:

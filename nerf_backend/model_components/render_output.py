@@ -17,3 +17,6 @@ class RenderOutput:
     # Per-sample detail for training; None from renders that stop rays early (inference).
     weights: Tensor | None  # [R, S]
     t_edges: Tensor | None  # [R, S+1]
+    # The samples the field was evaluated at with gradients, where fewer than every one of
+    # ``weights`` (a march that skips empty and hidden space); None: all of them.
+    field_samples: int | None = None

@@ -71,6 +71,22 @@ class TrainSummary:
     val_psnr: float | None
     collapse: Verdict | None = None  # the guard's last verdict when the run ended collapsed
     started_at: int = 0  # the iteration this call began at (a resumed run's checkpoint)
+    # Throughput over the run's training time: rays, and samples the field was evaluated at
+    # with gradients (None: a checkpoint written before they were counted).
+    rays_per_second: float | None = None
+    samples_per_second: float | None = None
+
+    def throughput_words(self) -> str:
+        """``rays_per_second`` and ``samples_per_second`` for people ("" when not counted).
+
+        Example:
+            >>> TrainSummary(10, 2.0, "time", None, rays_per_second=20480.0, samples_per_second=3.1e5).throughput_words()
+            '20 480 rays and 0.31 M samples a second'
+        """
+        if self.rays_per_second is None or self.samples_per_second is None:
+            return ""
+        return f"{self.rays_per_second:,.0f} rays and {self.samples_per_second / 1e6:.2f} M samples a second".replace(
+            ",", " ")
 
     @property
     def had_nothing_to_do(self) -> bool:
@@ -330,6 +346,7 @@ class _Training:
         self.batch_generator = torch.Generator().manual_seed(plan.seed)
         self.sample_generator = torch.Generator(device=self.device).manual_seed(plan.seed + 1)
         self.iteration, self.train_seconds = 0, 0.0
+        self.trained = {"rays": 0, "samples": 0}  # over the run, resumed segments included
         self.images = ImagePyramid(plan.train_split.rgba.to(self.device), plan.train_split.intrinsics)
         # Coarse-to-fine images: the size of a full-size pixel on the scene, which each level's
         # pixels are measured against (None: always the full size).
@@ -358,6 +375,7 @@ class _Training:
         self.batch_generator.set_state(state["batch_rng"].cpu())
         self.sample_generator.set_state(state["sample_rng"].cpu())
         self.iteration, self.train_seconds = state["iteration"], state["train_seconds"]
+        self.trained = state.get("trained", {"rays": None, "samples": None})
 
     def run(self) -> TrainSummary:
         config, run, options = self.config, self.run_folder, self.options
@@ -377,8 +395,11 @@ class _Training:
         val_psnr = self.score.psnr if self.score is not None else None
         run.log(events.Done(iteration=self.iteration, elapsed_s=self.train_seconds, reason=stop_reason,
                             val_psnr=val_psnr))
+        per_second = {key: None if value is None or self.train_seconds <= 0 else value / self.train_seconds
+                      for key, value in self.trained.items()}
         return TrainSummary(self.iteration, self.train_seconds, stop_reason, val_psnr, collapse=self.collapse,
-                            started_at=started_at)
+                            started_at=started_at, rays_per_second=per_second["rays"],
+                            samples_per_second=per_second["samples"])
 
     def _loop(self) -> str:
         """Steps until the iterations or the time budget are spent, a stop is asked for, or
@@ -469,6 +490,11 @@ class _Training:
             self.scaler.update()
             model.after_step()
         count("grid values", lambda: getattr(self.optimizer, "row_floats_updated", None) or 0)
+        if self.trained["rays"] is not None:
+            self.trained["rays"] += rays
+            self.trained["samples"] += sum(output.field_samples if output.field_samples is not None
+                                           else output.weights.numel() if output.weights is not None else 0
+                                           for output in outputs)
         self.iteration += 1
         self.train_seconds += time.perf_counter() - step_start
         self.progress.step(self.iteration, self.train_seconds)
@@ -578,7 +604,8 @@ class _Training:
             "iteration": self.iteration, "train_seconds": self.train_seconds, "model": self.model.state_dict(),
             "optimizer": self.optimizer.state_dict(), "batch_rng": self.batch_generator.get_state(),
             "sample_rng": self.sample_generator.get_state(), "config": self.config.to_dict(),
-            "restart": self.restart, **({"grad_scaler": self.scaler.state_dict()} if self.scaler.is_enabled() else {}),
+            "restart": self.restart, "trained": self.trained,
+            **({"grad_scaler": self.scaler.state_dict()} if self.scaler.is_enabled() else {}),
         })
         self.run_folder.log(events.Checkpoint(iteration=self.iteration, elapsed_s=self.train_seconds,
                                               path=str(self.run_folder.checkpoint_path)))
