@@ -192,7 +192,8 @@ def _direct_blank_psnr(dataset: Path) -> float:
 
 
 SUMMARY_COLUMNS = {"variant", "preset", "psnr", "ssim", "time_to_25_db_s", "time_to_30_db_s", "seconds_per_iteration",
-                   "iterations", "blank_psnr", "collapse_detected", "collapse_events", "collapsed"}
+                   "iterations", "rays_per_second", "samples_per_second", "blank_psnr", "collapse_detected",
+                   "collapse_events", "collapsed"}
 
 
 def test_bench_suite_benches_every_scene_resumes_and_refuses_to_overwrite(tiny_suite, tmp_path):
@@ -222,6 +223,7 @@ def test_bench_suite_benches_every_scene_resumes_and_refuses_to_overwrite(tiny_s
         for row in rows.values():
             assert set(row) == SUMMARY_COLUMNS
             assert row["iterations"] == 5 and 0 < row["seconds_per_iteration"] < 60
+            assert row["rays_per_second"] > 0 and row["samples_per_second"] > 0
             assert 5 < row["psnr"] < 60 and 0 < row["ssim"] <= 1 and row["blank_psnr"] == scene["blank_psnr"]
             assert row["collapsed"] == (row["psnr"] < scene["blank_psnr"] + 1.0)
             assert isinstance(row["collapse_detected"], bool)

@@ -48,7 +48,8 @@ RENDER_STAGES = ("spans", "march", "density", "colour")
 COMPILED_RENDER_STAGES = ("march", "colour")
 MARCH_BYTES_PER_SAMPLE = 10 * 4
 ADAM_BYTES_PER_VALUE = 7 * 4
-ADAM_ARRAYS = 4  # value, gradient and the two moments: one random line each for a row of 16
+# Adam's touched rows lie scattered: value, gradient and the two moments, a random line each a row of 16.
+ADAM_ARRAYS = 4
 
 
 def _reference(hardware: dict, flops: float = 0.0, bytes_moved: float = 0.0, lines: float = 0.0) -> float:
@@ -130,8 +131,6 @@ def profile_marched_step(dataset: Path, preset: str, steps: int, out_dir: Path, 
         # Backward: the forward's FLOPs twice over, the rows read again and their gradients
         # written; a voxel grid's blend only writes its gradients (BACKWARD_WORK).
         "backward": _reference(hardware, flops=backward_work * field_work, lines=backward_work * grid_lines),
-        # Adam's touched rows lie scattered: each one's four arrays (value, gradient, moments)
-        # are random lines too.
         "optimiser": _reference(hardware, bytes_moved=train_items["optimiser"] * ADAM_BYTES_PER_VALUE,
                                 lines=ADAM_ARRAYS * grid_lines),
     }

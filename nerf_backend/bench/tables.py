@@ -186,6 +186,7 @@ def plot_trade(trade: dict, path: Path) -> None:
             points = sorted((float(b), cell["psnr"]) for b, cell in variant["by_budget"].items())
             axis.plot([b for b, _ in points], [p for _, p in points], marker="o", label=variant["variant"])
         axis.set_xscale("log")
+        axis.minorticks_off()  # the budgets alone are labelled
         axis.set_xticks(trade["budgets_seconds"])
         axis.set_xticklabels([f"{b:g}" for b in trade["budgets_seconds"]])
         axis.set_title(scene["scene"])

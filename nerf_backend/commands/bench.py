@@ -62,29 +62,20 @@ def run(args: argparse.Namespace) -> int:
     if (args.dataset is None) == (args.suite is None):
         raise NerfError("bench: give a DATASET or --suite PATH ... (not both)")
     variants = [Variant.parse(n) for n in names]
-    seconds = args.budget_seconds
-    if seconds is not None and len(seconds) > 1:
+    common = dict(points=args.points, curve_views=args.curve_views, seed=args.seed, device=args.device,
+                  overwrite=args.overwrite, command=args.command_line)
+    seconds = args.budget_seconds or ()
+    if len(seconds) > 1:
         if args.iters is not None:
             raise NerfError("bench: give either several --budget-seconds or --iters, not both")
-        run_trade(args.suite or [args.dataset], variants, args.out, seconds, points=args.points,
-                  curve_views=args.curve_views, seed=args.seed, device=args.device, overwrite=args.overwrite,
-                  command=args.command_line)
-        print((args.out / "trade.md").read_text(), end="")
-        print(f"written {args.out / 'trade.json'}, {args.out / 'trade.md'}, {args.out / 'trade.png'} and each "
-              f"budget's bench in {args.out}/<budget>s")
-        return 0
-    args.budget_seconds = seconds[0] if seconds else None
-    if args.suite is not None:
-        run_suite(args.suite, variants, args.out, args.budget_seconds, args.iters, points=args.points,
-                  curve_views=args.curve_views, seed=args.seed, device=args.device, overwrite=args.overwrite,
-                  command=args.command_line)
-        print((args.out / "summary.md").read_text(), end="")
-        print(f"written {args.out / 'summary.json'}, {args.out / 'summary.md'}, {args.out / 'summary.png'} "
-              f"and each scene's bench in {args.out}/NAME")
-        return 0
-    run_bench(args.dataset, variants, args.out, args.budget_seconds, args.iters, points=args.points,
-              curve_views=args.curve_views, seed=args.seed, device=args.device, overwrite=args.overwrite,
-              command=args.command_line)
-    print((args.out / "bench.md").read_text(), end="")
-    print(f"written {args.out / 'bench.json'}, {args.out / 'bench.md'}, {args.out / 'bench.png'}")
+        run_trade(args.suite or [args.dataset], variants, args.out, seconds, **common)
+        name, also = "trade", f" and each budget's bench in {args.out}/<budget>s"
+    elif args.suite is not None:
+        run_suite(args.suite, variants, args.out, seconds[0] if seconds else None, args.iters, **common)
+        name, also = "summary", f" and each scene's bench in {args.out}/NAME"
+    else:
+        run_bench(args.dataset, variants, args.out, seconds[0] if seconds else None, args.iters, **common)
+        name, also = "bench", ""
+    print((args.out / f"{name}.md").read_text(), end="")
+    print(f"written {args.out / f'{name}.json'}, {args.out / f'{name}.md'}, {args.out / f'{name}.png'}{also}")
     return 0

@@ -490,11 +490,7 @@ class _Training:
             self.scaler.update()
             model.after_step()
         count("grid values", lambda: getattr(self.optimizer, "row_floats_updated", None) or 0)
-        if self.trained["rays"] is not None:
-            self.trained["rays"] += rays
-            self.trained["samples"] += sum(output.field_samples if output.field_samples is not None
-                                           else output.weights.numel() if output.weights is not None else 0
-                                           for output in outputs)
+        self._count_trained(rays, outputs)
         self.iteration += 1
         self.train_seconds += time.perf_counter() - step_start
         self.progress.step(self.iteration, self.train_seconds)
@@ -520,6 +516,16 @@ class _Training:
                                + (f" (1/{factor} size, the model's detail)" if factor > 1 else " (full size)"))
             self.image_factor = factor
         return level
+
+    def _count_trained(self, rays: int, outputs: list) -> None:
+        """Adds a step's rays and the samples its field was evaluated at (a march's lit ones,
+        else every one of each pass) to the run's counts, unless its checkpoint predates them."""
+        if self.trained["rays"] is None:
+            return
+        self.trained["rays"] += rays
+        self.trained["samples"] += sum(output.field_samples if output.field_samples is not None
+                                       else output.weights.numel() if output.weights is not None else 0
+                                       for output in outputs)
 
     def _steps_left(self) -> float | None:
         """Under a time budget, the steps the run can still take at its rate so far (the whole
