@@ -98,7 +98,7 @@ def test_bench_at_several_budgets_trains_each_from_scratch_and_writes_the_trade(
     for row in summary["budgets"]:
         cells = {v["variant"]: v["by_budget"][f"{row['budget_seconds']:g}"]["psnr"] for v in summary["variants"]}
         assert row["best_fixed"]["variant"] == "fast"
-        assert row["auto_gap_db"] == pytest.approx(cells["auto"] - cells["fast"])
+        assert row["auto"]["gap_to_best_fixed_db"] == pytest.approx(cells["auto"] - cells["fast"])
     table = (out / "trade.md").read_text()
     assert "| scene | variant | 2 s | 4 s |" in table and table.count(f"| {scene} | ") == 2 + 2
     with Image.open(out / "trade.png") as plot:

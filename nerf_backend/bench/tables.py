@@ -170,7 +170,7 @@ def trade_markdown(trade: dict) -> str:
             best, auto = row["best_fixed"] or {}, row["auto"] or {}
             lines.append(f"| {scene['scene']} | {row['budget_seconds']:g} s | {best.get('variant', '—')} "
                          f"| {_fmt(best.get('psnr'), '.2f')} | {_fmt(auto.get('psnr'), '.2f')} "
-                         f"| {_fmt(row['auto_gap_db'], '+.2f')} |")
+                         f"| {_fmt(auto.get('gap_to_best_fixed_db'), '+.2f')} |")
     return "\n".join(lines) + "\n"
 
 

@@ -37,17 +37,21 @@ def budget_folder(out_dir: Path, seconds: float) -> Path:
 
 def trade_summary(summaries: dict[float, dict]) -> dict:
     """Each scene's variants across the budgets, from each budget's suite summary
-    (``run_suite``'s, keyed by the budget in seconds): pure, no I/O.
+    (``run_suite``'s, keyed by the budget in seconds, whose scenes name their best fixed variant
+    and auto's gap to it): pure, no I/O.
 
     Example:
-        >>> row = lambda name, preset, psnr: {"variant": name, "preset": preset, "psnr": psnr, "ssim": 0.9,
+        >>> row = lambda name, psnr: {"variant": name, "preset": name, "psnr": psnr, "ssim": 0.9,
         ...     "iterations": 10, "rays_per_second": 1e4, "samples_per_second": 1e6}
-        >>> suite = lambda fast, auto: {"scenes": [{"scene": "lego", "variants": [row("fast", "fast", fast),
-        ...     row("auto", "auto", auto)]}]}
-        >>> trade = trade_summary({60.0: suite(30.0, 31.5), 600.0: suite(33.0, 32.5)})
+        >>> suite = lambda fast, auto: {"scenes": [{"scene": "lego", "variants": [row("fast", fast), row("auto", auto)],
+        ...     "best_fixed": {"variant": "fast", "psnr": fast},
+        ...     "auto": {"variant": "auto", "psnr": auto, "gap_to_best_fixed_db": auto - fast}}]}
+        >>> trade = trade_summary({600.0: suite(33.0, 32.5), 60.0: suite(30.0, 31.5)})
         >>> scene = trade["scenes"][0]
-        >>> [(b["budget_seconds"], b["best_fixed"]["variant"], b["auto_gap_db"]) for b in scene["budgets"]]
-        [(60.0, 'fast', 1.5), (600.0, 'fast', -0.5)]
+        >>> [(b["budget_seconds"], b["auto"]["gap_to_best_fixed_db"]) for b in scene["budgets"]]
+        [(60.0, 1.5), (600.0, -0.5)]
+        >>> scene["variants"][1]["by_budget"]["600"]["psnr"]
+        32.5
     """
     budgets = sorted(summaries)
     names = [scene["scene"] for scene in summaries[budgets[0]]["scenes"]]
@@ -56,26 +60,16 @@ def trade_summary(summaries: dict[float, dict]) -> dict:
         variants: dict[str, dict] = {}
         per_budget = []
         for budget in budgets:
-            scene = next((s for s in summaries[budget]["scenes"] if s["scene"] == name), None)
-            rows = scene["variants"] if scene is not None else []
-            for row in rows:
+            scene = next((s for s in summaries[budget]["scenes"] if s["scene"] == name), {})
+            for row in scene.get("variants", []):
                 entry = variants.setdefault(row["variant"], {"variant": row["variant"], "preset": row["preset"],
                                                              "by_budget": {}})
                 entry["by_budget"][f"{budget:g}"] = {key: row.get(key) for key in (
                     "psnr", "ssim", "iterations", "rays_per_second", "samples_per_second")}
-            fixed = [row for row in rows if row["preset"] != "auto"]
-            best = max(fixed, key=lambda row: row["psnr"], default=None)
-            auto = next((row for row in rows if row["variant"] == "auto"), None) or next(
-                (row for row in rows if row["preset"] == "auto"), None)
-            per_budget.append({
-                "budget_seconds": budget,
-                "best_fixed": {"variant": best["variant"], "psnr": best["psnr"]} if best else None,
-                "auto": {"variant": auto["variant"], "psnr": auto["psnr"]} if auto else None,
-                "auto_gap_db": auto["psnr"] - best["psnr"] if auto and best else None,
-            })
+            per_budget.append({"budget_seconds": budget, "best_fixed": scene.get("best_fixed"),
+                               "auto": scene.get("auto")})
         scenes.append({"scene": name, "variants": list(variants.values()), "budgets": per_budget})
-    return {"budgets_seconds": budgets, "scenes": scenes,
-            "best_fixed_rule": "highest final test PSNR among the variants whose preset is not auto, same budget"}
+    return {"budgets_seconds": budgets, "scenes": scenes}
 
 
 def run_trade(paths: list[Path], variants: list[Variant], out_dir: Path, budgets: tuple[float, ...],
