@@ -14,6 +14,7 @@ bfloat16 products are (tests/test_fast_model.py)."""
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 
 import pytest
@@ -122,3 +123,41 @@ def test_a_field_in_another_precision_colours_through_pytorch():
     field = _field().to(torch.float64)
     directions = torch.nn.functional.normalize(torch.randn(3, 3, dtype=torch.float64), dim=-1)
     assert compiled_colour.compiled_ray_colour(field, directions, torch.bfloat16) is None
+
+
+def _cpu_flags() -> set[str]:
+    try:
+        text = open("/proc/cpuinfo", encoding="utf-8", errors="replace").read()
+    except OSError:
+        return set()
+    return {flag for line in text.splitlines() if line.startswith("flags") for flag in line.split(":", 1)[1].split()}
+
+
+# x86 instruction-set levels below AVX-512 and what the CPU needs to run each: the pass's vectors
+# are 4 floats wide at x86-64 (SSE2), 8 at x86-64-v3 (AVX2), 16 with AVX-512 (the native build
+# above, where the CPU has it). Each width's code colours as PyTorch does.
+X86_LEVELS = {"x86-64": {"sse2"}, "x86-64-v3": {"avx2", "fma", "bmi2", "f16c", "movbe"}}
+
+
+@pytest.mark.parametrize("level", sorted(X86_LEVELS))
+def test_the_pass_built_for_each_vector_width_the_cpu_runs_colours_as_pytorch(level):
+    import platform
+
+    from nerf_backend.kernels.build import load_kernel
+    if platform.machine().lower() not in ("x86_64", "amd64") or not X86_LEVELS[level] <= _cpu_flags():
+        pytest.skip(f"this CPU cannot run code for {level}")
+    library, why_not = load_kernel("vm_grid", level)
+    assert library is not None, why_not
+    library.colour_samples.restype = ctypes.c_int
+    field = _field()
+    generator = torch.Generator().manual_seed(11)
+    directions = torch.nn.functional.normalize(torch.randn(37, 3, generator=generator), dim=-1)
+    ray = torch.randint(0, 37, (1001,), generator=generator)
+    low, high = torch.tensor(BOX.box_min), torch.tensor(BOX.box_max)
+    x = low + torch.rand(1001, 3, generator=generator) * (high - low)
+    with torch.no_grad():
+        layers = compiled_colour._linear_layers(field.colour_mlp)
+        actual = compiled_colour.CompiledRayColour(field, directions, layers, library)(x, ray)
+        expected = _reference(field, x, directions.index_select(0, ray))
+    assert float((actual - expected).abs().max()) <= 2e-6
+    assert float(expected.std()) > 0.05

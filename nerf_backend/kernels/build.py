@@ -29,8 +29,9 @@ SOURCES = Path(__file__).resolve().parent
 FLAGS = ("-O3", "-std=c99", "-shared", "-fPIC", "-pthread", "-fno-math-errno")
 # Code for the running CPU (AVX-512 where it has it, AVX2 where not: this project's machines
 # differ), keyed by the CPU's identity so a cache shared between machines never runs code the
-# CPU lacks; a compiler that refuses the flag builds portable code.
-NATIVE_FLAGS = ("-march=native",)
+# CPU lacks; a compiler that refuses the flag builds portable code. Tests also build for older
+# instruction sets the CPU runs (``target``), to check the kernels' code for each vector width.
+NATIVE_TARGET = "native"
 # Where built kernels are kept: NERF_KERNEL_CACHE, else the user's cache folder.
 CACHE_VARIABLE = "NERF_KERNEL_CACHE"
 
@@ -64,9 +65,10 @@ def cpu_identity() -> str:
 
 
 @functools.cache
-def load_kernel(name: str) -> tuple[ctypes.CDLL | None, str | None]:
-    """The library built from ``NAME.c`` and None, or None and why it is unavailable (no
-    compiler, a failed build); built once per source, compiler and machine, then reused."""
+def load_kernel(name: str, target: str = NATIVE_TARGET) -> tuple[ctypes.CDLL | None, str | None]:
+    """The library built from ``NAME.c`` for the compiler's ``-march=TARGET`` and None, or None
+    and why it is unavailable (no compiler, a failed build); built once per source, compiler,
+    target and machine, then reused."""
     source = SOURCES / f"{name}.c"
     compiler = c_compiler()
     if compiler is None:
@@ -75,7 +77,8 @@ def load_kernel(name: str) -> tuple[ctypes.CDLL | None, str | None]:
         text = b"\0".join([source.read_bytes(), *(h.read_bytes() for h in sorted(SOURCES.glob("*.h")))])
     except OSError as exc:  # a partial install: the PyTorch path still runs
         return None, f"{source}: cannot be read ({exc.strerror or exc})"
-    key = hashlib.sha256(b"\0".join([text, compiler.encode(), " ".join(FLAGS + NATIVE_FLAGS).encode(),
+    target_flags = (f"-march={target}",)
+    key = hashlib.sha256(b"\0".join([text, compiler.encode(), " ".join(FLAGS + target_flags).encode(),
                                      platform.machine().encode(), platform.system().encode(),
                                      cpu_identity().encode()])).hexdigest()[:16]
     folder = cache_folder()
@@ -85,7 +88,8 @@ def load_kernel(name: str) -> tuple[ctypes.CDLL | None, str | None]:
             folder.mkdir(parents=True, exist_ok=True)
             with tempfile.TemporaryDirectory(dir=folder) as scratch:
                 built = Path(scratch) / library.name
-                for flags in ((*FLAGS, *NATIVE_FLAGS), FLAGS):
+                tries = ((*FLAGS, *target_flags), FLAGS) if target == NATIVE_TARGET else ((*FLAGS, *target_flags),)
+                for flags in tries:
                     result = subprocess.run([compiler, *flags, str(source), "-o", str(built), "-lm"],
                                             capture_output=True, text=True, timeout=120, check=False)
                     if result.returncode == 0:
