@@ -110,7 +110,7 @@ def render_marched_compiled(
     as_float = {"dtype": torch.float32}
     origins, directions = origins.to(**as_float).contiguous(), directions.to(**as_float).contiguous()
     t_near, t_far = t_near.to(**as_float).contiguous(), t_far.to(**as_float).contiguous()
-    skip, occupied = occupancy.skip_cells().contiguous(), occupancy.occupied.contiguous()
+    skip, occupied = occupancy.render_bricks()
     volume = density.volume.to(**as_float).contiguous()
     settings = _Settings(
         step=step, steps=steps, span=occupancy.skip_span_steps(step), cells=(ctypes.c_int64 * 3)(*occupancy.cells),

@@ -141,6 +141,15 @@ class OccupancyGrid(nn.Module):
             self._bits_key = key
         return self._bits
 
+    def render_bricks(self) -> tuple[Tensor, Tensor]:
+        """``skip_cells`` and ``occupied`` as ``brick_bits`` lays them out, for the compiled
+        render march. Cached until ``occupied`` changes."""
+        key = values_key([self.occupied])
+        if getattr(self, "_bricks_key", None) != key:
+            self._bricks = (brick_bits(self.skip_cells()), brick_bits(self.occupied))
+            self._bricks_key = key
+        return self._bricks
+
     def skip_span_steps(self, step: float) -> int:
         """March steps of length ``step`` in one span that ``skip_cells`` can vouch for: the
         span must be no longer than ``2·SKIP_RADIUS`` of the shortest cell side."""
@@ -204,3 +213,29 @@ class OccupancyGrid(nn.Module):
     @property
     def occupied_fraction(self) -> float:
         return float(self.occupied.float().mean())
+
+
+BRICK = 8  # cells a side of a brick: 8³ bits, one 64-byte cache line
+
+
+def brick_bits(cells: Tensor) -> Tensor:
+    """A grid of bools ``[Gx, Gy, Gz]`` as bricks of 8³ cells, each brick 64 bytes (a cache
+    line): uint8 ``[ceil(Gx/8), ceil(Gy/8), ceil(Gz/8), 8, 8]``, cell ``(i, j, k)`` bit ``k % 8``
+    of byte ``[i/8, j/8, k/8, i % 8, j % 8]``. A ray's steps through 8 cells in any direction
+    read one line; as bytes in rows along z, a ray along x read a new line (and a new page)
+    each cell, and the render march waited on those reads (62 % of its time on lego's
+    thirty-minute model at 255³ cells).
+
+    Example:
+        >>> cells = torch.zeros(9, 3, 10, dtype=torch.bool)
+        >>> cells[8, 1, 9] = True
+        >>> bricks = brick_bits(cells)
+        >>> tuple(bricks.shape), bricks.nonzero().tolist(), int(bricks[1, 0, 1, 0, 1])
+        ((2, 1, 2, 8, 8), [[1, 0, 1, 0, 1]], 2)
+    """
+    counts = [-(-n // BRICK) for n in cells.shape]
+    # bools packed by numpy: int32 arithmetic on a 256³ grid added 0.44 GB to eval's peak
+    padded = np.zeros([n * BRICK for n in counts], dtype=bool)
+    padded[:cells.shape[0], :cells.shape[1], :cells.shape[2]] = cells.cpu().numpy()
+    bricks = padded.reshape(counts[0], BRICK, counts[1], BRICK, counts[2], BRICK).transpose(0, 2, 4, 1, 3, 5)
+    return torch.from_numpy(np.packbits(bricks, axis=-1, bitorder="little")[..., 0].copy())
