@@ -13,9 +13,7 @@
  * late to share the few milliseconds of a chunk of rays.
  *
  * Layouts (row-major, contiguous): origins/directions [R, 3]; t_near/t_far [R]; skip and
- * occupied as bricks of 8³ cells, 64 bytes each (occupancy.py's brick_bits: cell (i, j, k) is
- * bit k % 8 of byte (i % 8) * 8 + j % 8 of brick ((i / 8) * By + j / 8) * Bz + k / 8, with
- * B = ceil(G / 8)); volume [Nz, Ny, Nx] floats (grid_sample's layout: x fastest), vertices at
+ * occupied as bricks of 8³ bits (occupancy_bricks.h); volume [Nz, Ny, Nx] floats (grid_sample's layout: x fastest), vertices at
  * the box's corners (align_corners).
  */
 
@@ -23,6 +21,8 @@
 #include <pthread.h>
 #include <stdint.h>
 #include <string.h>
+
+#include "occupancy_bricks.h"
 
 enum { ACTIVATION_SOFTPLUS = 0, ACTIVATION_LAPLACE = 1, ACTIVATION_NEUS = 2 };
 
@@ -43,15 +43,12 @@ typedef struct {
 /* NaN goes to lo: a float cast to an integer must be in range (anything else is undefined). */
 static inline float clampf(float v, float lo, float hi) { return !(v >= lo) ? lo : (v > hi ? hi : v); }
 
-/* Whether the cell holding `units` (cell units, clamped to the grid; NaN to cell 0) is marked
- * in a grid of bricks (see Layouts). */
-static inline int brick_bit(const uint8_t *bricks, const float units[3], const int64_t cells[3]) {
+/* Whether the cell holding `units` (cell units, clamped to the grid; NaN to cell 0) is marked. */
+static inline int marked(const uint8_t *bricks, const float units[3], const int64_t cells[3]) {
     int64_t ijk[3];
     for (int axis = 0; axis < 3; ++axis)  /* clamped to the grid before the cast, NaN to 0 */
         ijk[axis] = (int64_t)clampf(units[axis], 0.0f, (float)(cells[axis] - 1));
-    const int64_t by = (cells[1] + 7) >> 3, bz = (cells[2] + 7) >> 3;
-    const int64_t brick = ((ijk[0] >> 3) * by + (ijk[1] >> 3)) * bz + (ijk[2] >> 3);
-    return (bricks[brick * 64 + (ijk[0] & 7) * 8 + (ijk[1] & 7)] >> (ijk[2] & 7)) & 1;
+    return brick_bit(bricks, ijk, cells);
 }
 
 static float activate(const MarchSettings *s, float v) {
@@ -151,7 +148,7 @@ static int march_ray(MarchJob *job, MarchThread *thread, int64_t r) {
         const float t_span = near + (span_start + 0.5f * (float)s->span * s->step);
         float units[3];
         for (int axis = 0; axis < 3; ++axis) units[axis] = start[axis] + along[axis] * t_span;
-        if (!brick_bit(job->skip, units, s->cells)) continue;
+        if (!marked(job->skip, units, s->cells)) continue;
         int64_t last = (k + 1) * s->span;
         if (last > s->steps - 1) last = s->steps - 1;
         for (int64_t u = k * s->span; u < last; ++u) {
@@ -168,7 +165,7 @@ static int march_ray(MarchJob *job, MarchThread *thread, int64_t r) {
                 units[axis] = start[axis] + along[axis] * t_mid;
                 inside &= units[axis] >= 0.0f && units[axis] <= (float)s->cells[axis];
             }
-            if (!inside || !brick_bit(job->occupied, units, s->cells)) continue;
+            if (!inside || !marked(job->occupied, units, s->cells)) continue;
             float p[3];
             for (int axis = 0; axis < 3; ++axis) p[axis] = o[axis] + d[axis] * t_mid;
             const float sigma = density_at(s, job->volume, p, d);

@@ -3,6 +3,8 @@
 /* Included by a kernel's .c file (build.py hashes the headers with it), after grid_common.h and
  * <string.h>. */
 
+#include "occupancy_bricks.h"
+
 /* The training march of a grid field, in one pass a ray, shared by the kernels of the fields
  * whose density it reads (vm_grid.c, sparse_grid.c). The including file defines, before
  * including this:
@@ -29,13 +31,12 @@ typedef struct {
     float opaque_transmittance;
     int64_t block_shift;        /* a block is 2^block_shift cells a side */
     int64_t blocks[3];
-    int64_t z_bytes;            /* bytes of occupancy bits a (x, y) column: ceil(Gz / 8) */
 } TrainMarch;
 
 typedef struct {
     const TrainMarch *s;
     const float *origins, *directions, *t_near, *t_far, *offset;
-    const uint8_t *occupied, *blocks;  /* cells' bits (8 along z a byte); blocks holding an occupied cell */
+    const uint8_t *occupied, *blocks;  /* cells' bits (occupancy_bricks.h); blocks holding an occupied cell */
     const DensitySource *density;
     int64_t begin, end;         /* rays */
     int64_t *lit;               /* room for (end - begin) * steps indices */
@@ -84,7 +85,7 @@ static void *train_march_work(void *arg) {
             const int64_t cell = (ijk[0] * s->cells[1] + ijk[1]) * s->cells[2] + ijk[2];
             if (cell != last_cell) {
                 last_cell = cell;
-                last_occupied = (w->occupied[(ijk[0] * s->cells[1] + ijk[1]) * s->z_bytes + (ijk[2] >> 3)] >> (ijk[2] & 7)) & 1;
+                last_occupied = brick_bit(w->occupied, ijk, s->cells);
             }
             if (!last_occupied) continue;
             ++occupied_count;

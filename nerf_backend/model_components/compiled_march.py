@@ -110,7 +110,7 @@ def render_marched_compiled(
     as_float = {"dtype": torch.float32}
     origins, directions = origins.to(**as_float).contiguous(), directions.to(**as_float).contiguous()
     t_near, t_far = t_near.to(**as_float).contiguous(), t_far.to(**as_float).contiguous()
-    skip, occupied = occupancy.render_bricks()
+    skip, occupied = occupancy.skip_bricks(), occupancy.occupied_bricks()
     volume = density.volume.to(**as_float).contiguous()
     settings = _Settings(
         step=step, steps=steps, span=occupancy.skip_span_steps(step), cells=(ctypes.c_int64 * 3)(*occupancy.cells),
@@ -181,7 +181,7 @@ class _TrainMarch(ctypes.Structure):
                 ("box_min", ctypes.c_float * 3), ("box_max", ctypes.c_float * 3), ("density_scale", ctypes.c_float),
                 ("density_shift", ctypes.c_float), ("density_gain", ctypes.c_float),
                 ("opaque_transmittance", ctypes.c_float),
-                ("block_shift", ctypes.c_int64), ("blocks", ctypes.c_int64 * 3), ("z_bytes", ctypes.c_int64)]
+                ("block_shift", ctypes.c_int64), ("blocks", ctypes.c_int64 * 3)]
 
 
 @dataclass(frozen=True)
@@ -233,10 +233,9 @@ def compiled_lit_samples(occupancy: OccupancyGrid, step: float, steps: int, dens
                            box_max=(ctypes.c_float * 3)(*occupancy.box_max.tolist()),
                            density_scale=density.scale, density_shift=density.shift, density_gain=density.gain,
                            opaque_transmittance=OPAQUE_TRANSMITTANCE, block_shift=TRAIN_BLOCK_SHIFT)
-    occupied = occupancy.occupied_bits()
+    occupied = occupancy.occupied_bricks()
     blocks = occupancy.occupied_blocks(1 << TRAIN_BLOCK_SHIFT).contiguous().view(torch.uint8)
     settings.blocks = (ctypes.c_int64 * 3)(*blocks.shape)
-    settings.z_bytes = occupied.shape[2]
 
     def lit(origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, offset: Tensor) -> Tensor:
         rays = origins.shape[0]

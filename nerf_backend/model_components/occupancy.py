@@ -122,33 +122,23 @@ class OccupancyGrid(nn.Module):
             self._blocks_key = key
         return self._blocks
 
-    def occupied_bits(self) -> Tensor:
-        """``occupied`` packed 8 cells a byte along z (bit k % 8 of byte k // 8: uint8
-        ``[Gx, Gy, ceil(Gz / 8)]``): 2 MB at 255³ where the bools take 16 MB, so the compiled
-        training march's lookups stay in the caches. Cached until ``occupied`` changes.
-
-        Example:
-            >>> grid = OccupancyGrid(torch.zeros(3), torch.ones(3), cells=(1, 1, 10))
-            >>> _ = grid.occupied.zero_()
-            >>> grid.occupied[0, 0, 9] = True
-            >>> grid.occupied_bits().tolist()
-            [[[0, 2]]]
-        """
+    def occupied_bricks(self) -> Tensor:
+        """``occupied`` as ``brick_bits`` lays it out (8³ cells a cache line), for the compiled
+        marches. Cached until ``occupied`` changes."""
         key = values_key([self.occupied])
-        if getattr(self, "_bits_key", None) != key:
-            cells = self.occupied.cpu().numpy()
-            self._bits = torch.from_numpy(np.packbits(cells, axis=2, bitorder="little"))
-            self._bits_key = key
-        return self._bits
+        if getattr(self, "_occupied_bricks_key", None) != key:
+            self._occupied_bricks = brick_bits(self.occupied)
+            self._occupied_bricks_key = key
+        return self._occupied_bricks
 
-    def render_bricks(self) -> tuple[Tensor, Tensor]:
-        """``skip_cells`` and ``occupied`` as ``brick_bits`` lays them out, for the compiled
-        render march. Cached until ``occupied`` changes."""
+    def skip_bricks(self) -> Tensor:
+        """``skip_cells`` as ``brick_bits`` lays it out, for the compiled render march. Cached
+        until ``occupied`` changes."""
         key = values_key([self.occupied])
-        if getattr(self, "_bricks_key", None) != key:
-            self._bricks = (brick_bits(self.skip_cells()), brick_bits(self.occupied))
-            self._bricks_key = key
-        return self._bricks
+        if getattr(self, "_skip_bricks_key", None) != key:
+            self._skip_bricks = brick_bits(self.skip_cells())
+            self._skip_bricks_key = key
+        return self._skip_bricks
 
     def skip_span_steps(self, step: float) -> int:
         """March steps of length ``step`` in one span that ``skip_cells`` can vouch for: the
