@@ -47,6 +47,24 @@ def extension_zip(tmp_path_factory):
     return zips[0]
 
 
+def test_every_kernel_builds_from_the_zip_alone(extension_zip, tmp_path):
+    """The kernels' sources include headers beside them: built from what the zip holds (not
+    the checkout), each one loads (the zip once shipped the .c files without their headers, and
+    Blender's backend trained through PyTorch)."""
+    zipfile.ZipFile(extension_zip).extractall(tmp_path / "extension")
+    names = sorted(path.stem for path in (REPO_ROOT / "nerf_backend" / "kernels").glob("*.c"))
+    script = ("import sys\nfrom nerf_backend.kernels.build import load_kernel\n"
+              f"reasons = [load_kernel(name)[1] for name in {names!r}]\nprint(reasons)\n"
+              "sys.exit(any(reasons))")
+    env = {**os.environ, "PYTHONPATH": str(tmp_path / "extension"), "NERF_KERNEL_CACHE": str(tmp_path / "cache")}
+    result = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300,
+                            cwd=tmp_path)
+    if "no C compiler" in result.stdout:
+        pytest.skip("no C compiler here")
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert len(list((tmp_path / "cache").glob("*.so"))) == len(names)
+
+
 def test_the_zip_holds_the_addon_the_backend_and_the_wheel_and_nothing_else(extension_zip):
     archive = zipfile.ZipFile(extension_zip)
     names = archive.namelist()
@@ -54,7 +72,8 @@ def test_the_zip_holds_the_addon_the_backend_and_the_wheel_and_nothing_else(exte
     assert "nerf_backend/training/trainer.py" in names and "nerf_contract/commands.py" in names
     assert "nerf_backend/configs/presets.json" in names  # data files travel with the code
     assert "nerf_backend/requirements.txt" in names and "nerf_backend/requirements-no-deps.txt" in names
-    kernels = {path.relative_to(REPO_ROOT).as_posix() for path in (REPO_ROOT / "nerf_backend" / "kernels").glob("*.c")}
+    kernels = {path.relative_to(REPO_ROOT).as_posix() for pattern in ("*.c", "*.h")
+               for path in (REPO_ROOT / "nerf_backend" / "kernels").glob(pattern)}
     assert kernels and kernels <= set(names), sorted(kernels - set(names))  # every compiled kernel's source
     assert not [n for n in names if "__pycache__" in n or n.startswith("tests/") or n.endswith(".pyc")]
     # The manifest's one wheel: what the add-on imports, and nothing else.

@@ -39,7 +39,7 @@ FIXED_TIME = (1980, 1, 1, 0, 0, 0)
 BACKEND_DATA = ("nerf_backend/requirements.txt", "nerf_backend/requirements-no-deps.txt", "nerf_backend/configs/presets.json")
 # The compiled kernels' C sources, every one: the backend builds them on first use (a kernel left
 # out would only be noticed when training or rendering reached it).
-KERNEL_SOURCES = ("nerf_backend/kernels", "*.c")
+KERNEL_SOURCES = ("nerf_backend/kernels", ("*.c", "*.h"))  # a kernel includes the headers beside it
 
 
 def _sources(package: str) -> list[Path]:
@@ -53,8 +53,9 @@ def extension_files() -> list[tuple[Path, str]]:
     for package in BACKEND_PACKAGES:
         files += [(path, path.relative_to(REPO).as_posix()) for path in _sources(package)]
     files += [(REPO / name, name) for name in BACKEND_DATA]
-    folder, pattern = KERNEL_SOURCES
-    files += [(path, path.relative_to(REPO).as_posix()) for path in sorted((REPO / folder).glob(pattern))]
+    folder, patterns = KERNEL_SOURCES
+    for pattern in patterns:
+        files += [(path, path.relative_to(REPO).as_posix()) for path in sorted((REPO / folder).glob(pattern))]
     return files
 
 
