@@ -48,8 +48,8 @@ INFERENCE_SPANS = 2
 MAX_INFERENCE_SPANS = 32
 # Inference leaves the faintest samples of a ray without colour, up to this much of its
 # weight in all, and gives that weight the ray's mean colour: a pixel moves by at most this
-# times its colour range (a quarter of an 8-bit level), and a soft surface's many faint
-# samples cost no field evaluation.
+# times its colour range (2.55 8-bit levels; far less, as the skipped samples' colours are near
+# the mean), and a soft surface's many faint samples cost no field evaluation.
 SKIPPED_WEIGHT = 1e-2
 # Training with a compiled march (its weights known before the field's pass) colours only the
 # lit samples weighing at least this (or a hundredth of their ray's heaviest, if less); the rest
