@@ -13,8 +13,8 @@
  * late to share the few milliseconds of a chunk of rays.
  *
  * Layouts (row-major, contiguous): origins/directions [R, 3]; t_near/t_far [R]; skip and
- * occupied as bricks of 8³ bits (occupancy_bricks.h); volume [Nz, Ny, Nx] floats (grid_sample's layout: x fastest), vertices at
- * the box's corners (align_corners).
+ * occupied as bricks of 8³ bits (occupancy_bricks.h); volume [Nz, Ny, Nx] floats (grid_sample's
+ * layout: x fastest), vertices at the box's corners (align_corners).
  */
 
 #include <math.h>
