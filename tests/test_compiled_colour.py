@@ -126,11 +126,10 @@ def test_a_field_in_another_precision_colours_through_pytorch():
 
 
 def _cpu_flags() -> set[str]:
-    try:
-        text = open("/proc/cpuinfo", encoding="utf-8", errors="replace").read()
-    except OSError:
-        return set()
-    return {flag for line in text.splitlines() if line.startswith("flags") for flag in line.split(":", 1)[1].split()}
+    """The instruction-set flags of the CPU (Linux), from what the kernels' cache is keyed on."""
+    from nerf_backend.kernels.build import cpu_identity
+    return {flag for line in cpu_identity().splitlines() if line.startswith("flags")
+            for flag in line.split(":", 1)[1].split()}
 
 
 # x86 instruction-set levels below AVX-512 and what the CPU needs to run each: the pass's vectors
