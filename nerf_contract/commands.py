@@ -19,7 +19,7 @@ from __future__ import annotations
 from typing import Optional, Sequence
 
 BACKEND_MODULE = "nerf_backend"
-TRAIN, RENDER, COMPARE, MESH, REPORT, EXPORT = "train", "render", "compare", "mesh", "report", "export"
+TRAIN, RENDER, COMPARE, MESH, REPORT, EXPORT, SERVE = "train", "render", "compare", "mesh", "report", "export", "serve"
 
 
 class BackendFlag:
@@ -43,6 +43,8 @@ class BackendFlag:
     RESOLUTION = "--resolution"
     TRIANGLES = "--triangles"
     TEXTURE_SIZE = "--texture-size"
+    FRAMES = "--frames"
+    IDLE_SECONDS = "--idle-seconds"
 
 
 class GeneratorFlag:
@@ -119,6 +121,13 @@ def export_argv(run: str, out: str, *, triangles: int, texture_size: int, device
 def report_argv(run: str) -> list[str]:
     """Write the run's comparison page, ``RUN/report/index.html``."""
     return [REPORT, str(run)]
+
+
+def serve_argv(run: str, frames: str, *, device: str, idle_seconds: Optional[float] = None) -> list[str]:
+    """Keep the run's model loaded and render the views asked for on stdin into frame files in
+    the folder ``frames`` (``view_frames``: the requests, events and frame files)."""
+    argv = [SERVE, str(run), BackendFlag.FRAMES, str(frames), BackendFlag.DEVICE, device]
+    return argv + ([BackendFlag.IDLE_SECONDS, str(idle_seconds)] if idle_seconds else [])
 
 
 def render_asset_argv(asset: str, dataset: str, engine: str) -> list[str]:

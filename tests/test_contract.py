@@ -48,6 +48,9 @@ def test_render_compare_mesh_and_report_command_lines_parse_as_asked():
     assert asset.overwrite and asset.no_progress
     report = _backend(commands.report_argv("run"))
     assert (report.command, [str(r) for r in report.results]) == ("report", ["run"])
+    serve = _backend(commands.serve_argv("run", "frames", device="cpu", idle_seconds=30.0))
+    assert (serve.command, str(serve.run), str(serve.frames), serve.device, serve.idle_seconds) == \
+        ("serve", "run", "frames", "cpu", 30.0)
 
 
 def test_a_flag_the_backend_does_not_define_fails_to_parse():

@@ -110,3 +110,47 @@ def ray_box_intersection(
     hit = t_far > t_near
     t_far = torch.where(hit, t_far, t_near)
     return t_near, t_far, hit
+
+
+def rays_from_matrices(view: Tensor, projection: Tensor, width: int, height: int) -> tuple[Tensor, Tensor]:
+    """Origins (on the near clip plane) and unit directions ``[H·W, 3]`` in world space of the
+    pixels of a view as a graphics API gives it: ``view`` maps world to camera, ``projection``
+    camera to OpenGL's clip space (Blender's ``RegionView3D.view_matrix`` and ``window_matrix``,
+    a camera's ``calc_matrix_camera``). Pixels row-major from the top row, as ``camera_rays``'s.
+    Each pixel's centre is unprojected at the near and the far clip plane, so perspective and
+    orthographic views alike (an orthographic view's rays are parallel).
+
+    Example:
+        >>> near, far = 0.1, 10.0  # a 90° perspective: the centre pixel looks down -Z
+        >>> p = torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, -(far + near) / (far - near),
+        ...                   -2 * far * near / (far - near)], [0, 0, -1, 0]])
+        >>> o, d = rays_from_matrices(torch.eye(4), p, 3, 3)
+        >>> [round(v, 4) for v in o[4].tolist()], [round(v, 4) for v in d[4].tolist()]
+        ([0.0, 0.0, -0.1], [0.0, 0.0, -1.0])
+        >>> [round(v, 4) for v in d[0].tolist()]  # the top-left pixel: up and to the left
+        [-0.4851, 0.4851, -0.7276]
+    """
+    inverse = torch.linalg.inv(projection.double() @ view.double())
+    x = (torch.arange(width, dtype=torch.float64) + 0.5) * (2.0 / width) - 1.0
+    y = 1.0 - (torch.arange(height, dtype=torch.float64) + 0.5) * (2.0 / height)
+    ndc_y, ndc_x = torch.meshgrid(y, x, indexing="ij")
+    ends = []
+    for ndc_z in (-1.0, 1.0):
+        clip = torch.stack([ndc_x.reshape(-1), ndc_y.reshape(-1), torch.full((width * height,), ndc_z,
+                                                                            dtype=torch.float64),
+                            torch.ones(width * height, dtype=torch.float64)], dim=-1)
+        world = clip @ inverse.T
+        ends.append(world[:, :3] / world[:, 3:])
+    directions = torch.nn.functional.normalize(ends[1] - ends[0], dim=-1)
+    return ends[0].float().contiguous(), directions.float().contiguous()
+
+
+def camera_z(view: Tensor, points: Tensor) -> Tensor:
+    """The distance of world ``points [N, 3]`` in front of the camera along its view axis
+    (``-z`` in camera space: what a depth buffer linearises to).
+
+    Example:
+        >>> camera_z(torch.eye(4), torch.tensor([[1.0, 2.0, -3.0]])).tolist()
+        [3.0]
+    """
+    return -(points.double() @ view[2, :3].double() + float(view[2, 3])).float()

@@ -32,6 +32,7 @@ from ..core.errors import NerfError
 from ..core.field_functions import ColourFn, DensityFn
 from ..core.files import write_json
 from ..core.scene_bounds import SceneBounds
+from ..core.world_frame import world_to_nerf_matrix
 from ..data.dataset import load_scene_profile
 from ..data.run_folder import RunFolder
 from ..model_components.ray_bounds import PROTOCOL_BOX, RayBounds
@@ -102,12 +103,7 @@ def to_blender_world(mesh: Mesh, world_to_nerf: dict | None) -> Mesh:
     4×4 ``matrix``, else ``scale`` and ``translation``); normals follow (inverse transpose)."""
     if world_to_nerf is None:
         return mesh
-    if "matrix" in world_to_nerf:
-        matrix = torch.tensor(world_to_nerf["matrix"], dtype=torch.float64)
-    else:
-        matrix = torch.eye(4, dtype=torch.float64) * float(world_to_nerf.get("scale", 1.0))
-        matrix[3, 3] = 1.0
-        matrix[:3, 3] = torch.tensor(world_to_nerf.get("translation", [0.0, 0.0, 0.0]), dtype=torch.float64)
+    matrix = world_to_nerf_matrix(world_to_nerf)
     inverse = torch.linalg.inv(matrix)
     vertices = mesh.vertices @ inverse[:3, :3].T + inverse[:3, 3]
     # Points map by A⁻¹, so normals map by (A⁻¹)⁻ᵀ = Aᵀ: as rows, n @ A.

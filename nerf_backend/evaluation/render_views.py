@@ -31,27 +31,40 @@ def render_image(
     chunk: int | None = None,
 ) -> RenderedImage:
     """Render one view deterministically; peak memory scales with ``chunk``, not the image."""
-    chunk = chunk if chunk is not None else model.render_chunk
     device = next(model.parameters()).device
-    was_training = model.training
-    model.eval()
     pose = camera_to_world.to(device)
     height, width = intrinsics.height, intrinsics.width
-    rgb = np.empty((height * width, 3), np.float32)
-    depth = np.empty(height * width, np.float32)
-    opacity = np.empty(height * width, np.float32)
-    for start in range(0, height * width, chunk):
-        stop = min(start + chunk, height * width)
+
+    def rays(start: int, stop: int) -> tuple[Tensor, Tensor]:
         # Pixel centres of this chunk only: the full grid would be O(H·W) memory.
-        pixels = pixel_centres(width, torch.arange(start, stop, device=device))
-        origins, directions = camera_rays(intrinsics, pose, pixels)
+        return camera_rays(intrinsics, pose, pixel_centres(width, torch.arange(start, stop, device=device)))
+
+    rgb, depth, opacity = render_rays(model, rays, height * width, ray_bounds, chunk)
+    return RenderedImage(rgb.reshape(height, width, 3), depth.reshape(height, width), opacity.reshape(height, width))
+
+
+@torch.no_grad()
+def render_rays(model: Model, rays: Callable[[int, int], tuple[Tensor, Tensor]], count: int, ray_bounds: RayBounds,
+                chunk: int | None = None, background: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Colour ``[N, 3]`` (over ``background``), expected depth ``[N]`` and opacity ``[N]`` of
+    ``count`` rays, ``rays(start, stop)`` giving the origins and unit directions of rays
+    ``start`` to ``stop`` on the model's device, ``chunk`` rays a pass."""
+    chunk = chunk if chunk is not None else model.render_chunk
+    was_training = model.training
+    model.eval()
+    rgb = np.empty((count, 3), np.float32)
+    depth = np.empty(count, np.float32)
+    opacity = np.empty(count, np.float32)
+    for start in range(0, count, chunk):
+        stop = min(start + chunk, count)
+        origins, directions = rays(start, stop)
         t_near, t_far = ray_bounds(origins, directions)
-        out = final_output(model(origins, directions, t_near, t_far, background=1.0))
+        out = final_output(model(origins, directions, t_near, t_far, background=background))
         rgb[start:stop] = out.rgb.clamp(0, 1).float().cpu().numpy()
         depth[start:stop] = out.depth.float().cpu().numpy()
         opacity[start:stop] = out.opacity.clamp(0, 1).float().cpu().numpy()
     model.train(was_training)
-    return RenderedImage(rgb.reshape(height, width, 3), depth.reshape(height, width), opacity.reshape(height, width))
+    return rgb, depth, opacity
 
 
 def save_rendered(image: RenderedImage, out_dir: Path, stem: str) -> Path:

@@ -1,0 +1,273 @@
+"""``serve RUN``: the live view's render server as the add-on runs it, a real subprocess talking
+through its pipes and frame files (nerf_contract.view_frames). Its frames against the run's own
+renderer, depth against the camera, latest request wins, and every way it can end."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from nerf_backend.core.cameras import Intrinsics, camera_rays, pixel_centres, rays_from_matrices
+from nerf_backend.data.dataset import load_split
+from nerf_backend.data.run_folder import RunFolder
+from nerf_backend.evaluation.inference import load_trained_model
+from nerf_backend.evaluation.render_views import render_image
+from nerf_backend.evaluation.view_server import Frame, FrameWriter
+from nerf_contract import commands, view_frames
+
+from conftest import REPO_ROOT
+
+NEAR, FAR = 0.05, 100.0
+
+
+def perspective(intrinsics, width: int, height: int) -> list[list[float]]:
+    """OpenGL's projection of pinhole intrinsics scaled to ``width × height`` (Blender's
+    window_matrix for that camera)."""
+    sx, sy = width / intrinsics.width, height / intrinsics.height
+    fx, fy, cx, cy = intrinsics.fl_x * sx, intrinsics.fl_y * sy, intrinsics.cx * sx, intrinsics.cy * sy
+    return [[2 * fx / width, 0.0, 1 - 2 * cx / width, 0.0], [0.0, 2 * fy / height, 2 * cy / height - 1, 0.0],
+            [0.0, 0.0, -(FAR + NEAR) / (FAR - NEAR), -2 * FAR * NEAR / (FAR - NEAR)], [0.0, 0.0, -1.0, 0.0]]
+
+
+def orthographic(half_width: float, half_height: float) -> list[list[float]]:
+    return [[1 / half_width, 0.0, 0.0, 0.0], [0.0, 1 / half_height, 0.0, 0.0],
+            [0.0, 0.0, -2 / (FAR - NEAR), -(FAR + NEAR) / (FAR - NEAR)], [0.0, 0.0, 0.0, 1.0]]
+
+
+class Server:
+    """``python -m nerf_backend serve`` as the add-on starts it, with its pipes."""
+
+    def __init__(self, run: Path, frames: Path, *extra: str):
+        frames.mkdir(parents=True, exist_ok=True)
+        argv = commands.serve_argv(str(run), str(frames), device="cpu")
+        self.process = subprocess.Popen(commands.backend_command(sys.executable, [*argv, *extra]), cwd=REPO_ROOT,
+                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                        text=True)
+        self.ready = self.event()
+
+    def send(self, line: str) -> None:
+        self.process.stdin.write(line + "\n")
+        self.process.stdin.flush()
+
+    def event(self) -> dict:
+        line = self.process.stdout.readline()
+        event = view_frames.parse_event(line)
+        assert event is not None, f"not an event: {line!r}; stderr: {self.process.stderr.read()[-2000:]}"
+        return event
+
+    def frame(self, event: dict) -> tuple[np.ndarray, np.ndarray]:
+        """RGBA and depth of a ``frame`` event, rows top to bottom."""
+        frames = view_frames.FrameFile.open(event["file"])
+        try:
+            width, height, rgba, depth = frames.read(event["slot"], event["sequence"])
+        finally:
+            frames.close()
+        return (np.frombuffer(rgba, np.float32).reshape(height, width, 4)[::-1],
+                np.frombuffer(depth, np.float32).reshape(height, width)[::-1])
+
+    def finish(self, timeout: float = 60) -> str:
+        """What the server writes until it exits (by its own choice: its stdin stays open)."""
+        self.process.wait(timeout)  # its few last lines fit the pipe's buffer
+        return self.process.stdout.read()
+
+
+@pytest.fixture(scope="module")
+def test_view(trained_run):
+    split = load_split(RunFolder(trained_run).read_config()["dataset"], "test")
+    return split.intrinsics, split.poses[0]
+
+
+def _request(request_id, intrinsics, pose, width, height, **extra) -> str:
+    view = torch.linalg.inv(pose.double()).tolist()
+    return view_frames.render_request(request_id, view_matrix=view, projection_matrix=perspective(intrinsics, width,
+                                                                                                  height),
+                                      width=width, height=height, **extra)
+
+
+def test_rays_of_a_projection_are_the_pinhole_cameras(test_view):
+    """The rays unprojected from OpenGL matrices are the pinhole rays of the same camera."""
+    intrinsics, pose = test_view
+    width, height = 31, 17  # odd and unequal: a transposed or flipped axis shows
+    scaled = intrinsics.scaled(1.0)
+    origins, directions = rays_from_matrices(torch.linalg.inv(pose.double()).float(),
+                                             torch.tensor(perspective(scaled, width, height)), width, height)
+    k = Intrinsics(width, height, scaled.fl_x * width / scaled.width, scaled.fl_y * height / scaled.height,
+                   scaled.cx * width / scaled.width, scaled.cy * height / scaled.height)
+    pinhole_origins, pinhole_directions = camera_rays(k, pose, pixel_centres(width, torch.arange(width * height)))
+    assert torch.allclose(directions, pinhole_directions, atol=2e-6)
+    # Origins sit on the near plane: the camera's centre plus NEAR / cos(angle) along the ray.
+    cosine = -(pinhole_directions @ pose[:3, 2])
+    assert torch.allclose(origins, pinhole_origins + (NEAR / cosine)[:, None] * pinhole_directions, atol=1e-5)
+
+
+def test_an_orthographic_views_rays_are_parallel(test_view):
+    _, pose = test_view
+    origins, directions = rays_from_matrices(torch.linalg.inv(pose.double()).float(),
+                                             torch.tensor(orthographic(2.0, 1.0)), 8, 4)
+    assert torch.allclose(directions, -pose[:3, 2].expand(32, 3), atol=1e-6)
+    spread = (origins - origins.mean(dim=0)) @ pose[:3, :3]  # in the camera's axes
+    assert spread[:, 0].abs().max() == pytest.approx(2.0 * 7 / 8, abs=1e-5)
+    assert spread[:, 1].abs().max() == pytest.approx(1.0 * 3 / 4, abs=1e-5)
+
+
+def test_frames_match_the_runs_renderer_with_the_cameras_depth(trained_run, test_view, tmp_path):
+    """A served frame is the run's own render of that camera (colour within 1e-3 once composited
+    over white), its alpha the opacity, its depth the camera's z of the expected surface."""
+    intrinsics, pose = test_view
+    width, height = intrinsics.width, intrinsics.height
+    server = Server(trained_run, tmp_path / "frames")
+    assert server.ready["event"] == view_frames.READY
+    server.send(_request(7, intrinsics, pose, width, height))
+    event = server.event()
+    assert (event["event"], event["id"], event["width"], event["height"]) == ("frame", 7, width, height)
+    rgba, depth = server.frame(event)
+    server.send(view_frames.quit_request())
+    assert '"reason": "asked to quit"' in server.finish()
+
+    model, ray_bounds, _ = load_trained_model(RunFolder(trained_run), torch.device("cpu"))
+    reference = render_image(model, intrinsics, pose, ray_bounds)
+    over_white = rgba[..., :3] + (1 - rgba[..., 3:])
+    assert np.abs(over_white - reference.rgb).max() < 1e-3
+    assert np.abs(rgba[..., 3] - reference.opacity).max() < 1e-3
+    hit = reference.opacity > 0.5
+    assert hit.mean() > 0.05, "the test view should show the demo's objects"
+    pixels = torch.arange(width * height)
+    _, directions = camera_rays(intrinsics, pose, pixel_centres(width, pixels))
+    cosine = (-(directions @ pose[:3, 2])).reshape(height, width).numpy()
+    expected = reference.depth / np.maximum(reference.opacity, 1e-4) * cosine
+    assert np.allclose(depth[hit], expected[hit], rtol=1e-3, atol=1e-3)
+    assert np.isinf(depth[reference.opacity < 1e-5]).all()
+    assert not any(tmp_path.joinpath("frames").iterdir()), "the server leaves no frame file behind"
+
+
+def test_the_latest_request_wins_and_bad_ones_get_one_line(trained_run, test_view, tmp_path):
+    intrinsics, pose = test_view
+    server = Server(trained_run, tmp_path / "frames")
+    server.send("not json")
+    assert server.event() == {"event": "error", "id": None, "message": "not a request: not json"}
+    bad = view_frames.render_request(1, view_matrix=[[1.0, 0.0], [0.0, 1.0]], projection_matrix=view_frames.IDENTITY,
+                                     width=8, height=8)
+    server.send(bad)
+    assert server.event()["message"] == "request 1: view_matrix must be a 4×4 matrix of finite numbers"
+    # Six requests at once: each replaces the one before it while it waits, so the server draws
+    # the last, and the first only where it took it before the others arrived.
+    server.process.stdin.write("".join(_request(i, intrinsics, pose, 48, 48) + "\n" for i in range(10, 16)))
+    server.process.stdin.flush()
+    ids = []
+    while not ids or ids[-1] != 15:
+        event = server.event()
+        assert event["event"] == "frame", event
+        ids.append(event["id"])
+    assert set(ids) <= {10, 15}, ids
+    server.process.stdin.close()
+    assert '"reason": "its parent closed the request pipe"' in server.finish()
+
+
+def test_a_frame_larger_than_its_file_goes_into_a_new_one(tmp_path):
+    writer = FrameWriter(tmp_path)
+    small = writer.write(Frame(np.zeros((8, 8, 4), np.float32), np.zeros((8, 8), np.float32), 0.1), 1, 5)
+    large = writer.write(Frame(np.ones((300, 400, 4), np.float32), np.full((300, 400), 2.0, np.float32), 0.2), 2, 5)
+    assert large["file"] != small["file"] and (large["width"], large["height"]) == (400, 300)
+    assert not Path(small["file"]).exists(), "the outgrown file is removed"
+    reader = view_frames.FrameFile.open(large["file"])
+    width, height, rgba, depth = reader.read(large["slot"], large["sequence"])
+    assert (width, height) == (400, 300)
+    assert np.frombuffer(rgba, np.float32).min() == 1.0 and np.frombuffer(depth, np.float32).max() == 2.0
+    reader.close()
+    writer.close()
+    assert not any(tmp_path.iterdir())
+
+
+def test_a_stale_slot_is_refused(tmp_path):
+    """A reader holding a frame event after the server wrote that slot again gets None."""
+    frames = view_frames.FrameFile.create(str(tmp_path / "f.bin"), capacity=4)
+    sequence = frames.begin_frame(0)
+    frames.end_frame(0, sequence, 1, 2, 2, 0.1, 5)
+    reader = view_frames.FrameFile.open(str(tmp_path / "f.bin"))
+    assert reader.read(0, sequence)[:2] == (2, 2)
+    frames.begin_frame(0)  # written again: odd while being written, then a new sequence
+    assert reader.read(0, sequence) is None
+    reader.close()
+    frames.remove()
+    (tmp_path / "junk.bin").write_bytes(b"x" * 5000)
+    with pytest.raises(ValueError, match="junk.bin: not a version 1 frame file"):
+        view_frames.FrameFile.open(str(tmp_path / "junk.bin"))
+
+
+def test_a_training_run_reloads_and_a_deleted_run_stops_the_server(trained_run, test_view, tmp_path):
+    intrinsics, pose = test_view
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    server = Server(run, tmp_path / "frames")
+    # Training replaces the checkpoint atomically (os.replace): the server loads the new one.
+    checkpoint = RunFolder(run).checkpoint_path
+    shutil.copy(checkpoint, tmp_path / "newer.pt")
+    time.sleep(2.1)  # RELOAD_CHECK_SECONDS
+    os.replace(tmp_path / "newer.pt", checkpoint)
+    server.send(_request(1, intrinsics, pose, 16, 16))
+    assert server.event()["event"] == "reloaded"
+    assert server.event()["event"] == "frame"
+    shutil.rmtree(run)
+    time.sleep(2.1)
+    server.send(_request(2, intrinsics, pose, 16, 16))
+    out = server.finish()
+    assert f"{checkpoint}: the run's checkpoint is gone (the run folder was deleted or moved)" in out
+    assert server.process.returncode == 0
+    assert not any(tmp_path.joinpath("frames").iterdir())
+
+
+def test_an_idle_server_stops(trained_run, tmp_path):
+    server = Server(trained_run, tmp_path / "frames", "--idle-seconds", "0.5")
+    assert '"reason": "idle for 0.5 s"' in server.finish(timeout=60)
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="kill -9 of the parent is POSIX's")
+def test_the_server_ends_with_its_parent_killed(trained_run, tmp_path):
+    """The add-on's Blender killed (kill -9): the server's stdin closes, it removes its frame
+    file and exits; no orphan stays."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    parent = textwrap.dedent(f"""
+        import subprocess, sys, time
+        from nerf_contract import commands, view_frames
+        argv = commands.serve_argv({str(trained_run)!r}, {str(frames)!r}, device="cpu")
+        server = subprocess.Popen(commands.backend_command(sys.executable, argv), stdin=subprocess.PIPE,
+                                  stdout=subprocess.PIPE, text=True)
+        server.stdout.readline()  # ready
+        server.stdin.write(view_frames.render_request(1, view_matrix=view_frames.IDENTITY,
+                           projection_matrix={orthographic(2.0, 2.0)!r}, width=64, height=64) + "\\n")
+        server.stdin.flush()
+        server.stdout.readline()  # its frame: the frame file exists now
+        print(server.pid, flush=True)
+        time.sleep(600)
+    """)
+    process = subprocess.Popen([sys.executable, "-c", parent], cwd=REPO_ROOT, stdout=subprocess.PIPE, text=True)
+    server_pid = int(process.stdout.readline())
+    assert len(list(frames.iterdir())) == 1
+    os.kill(process.pid, signal.SIGKILL)
+    process.wait()
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and _alive(server_pid):
+        time.sleep(0.1)
+    assert not _alive(server_pid), "the server outlived its parent"
+    assert not any(frames.iterdir()), "the server left its frame file"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # A zombie (exited, not yet reaped by init) counts as gone.
+    status = Path(f"/proc/{pid}/status")
+    return not (status.exists() and "State:\tZ" in status.read_text())
