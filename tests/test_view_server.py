@@ -4,6 +4,7 @@ renderer, depth against the camera, latest request wins, and every way it can en
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -25,7 +26,7 @@ from nerf_backend.evaluation.render_views import render_image
 from nerf_backend.evaluation.view_server import Frame, FrameWriter
 from nerf_contract import commands, view_frames
 
-from conftest import REPO_ROOT
+from conftest import REPO_ROOT, run_python
 
 NEAR, FAR = 0.05, 100.0
 
@@ -271,3 +272,14 @@ def _alive(pid: int) -> bool:
     # A zombie (exited, not yet reaped by init) counts as gone.
     status = Path(f"/proc/{pid}/status")
     return not (status.exists() and "State:\tZ" in status.read_text())
+
+
+def test_bench_view_times_the_server_as_the_add_on_uses_it(trained_run, tmp_path):
+    """``bench-view``: the real server orbited at a quarter of the size, then the whole frame."""
+    result = run_python("-m", "nerf_backend", "bench-view", str(trained_run), "--size", "32", "--frames", "3",
+                        "--device", "cpu", "--out", str(tmp_path / "bench"))
+    report = json.loads((tmp_path / "bench" / "view_speed.json").read_text())
+    assert report["region"] == [32, 32] and report["orbit_size"] == [8, 8] and report["orbit"]["frames"] == 3
+    assert 0 < report["orbit"]["render_median_seconds"] <= report["orbit"]["median_seconds"]
+    assert 0 < report["full_frame"]["render_seconds"] <= report["full_frame"]["seconds"]
+    assert "frames a second" in result.stdout and report["start_seconds"] > 0

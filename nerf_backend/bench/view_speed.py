@@ -1,0 +1,163 @@
+"""``bench-view RUN``: how fast the live view answers, measured as the add-on uses it: the real
+``serve`` process, its pipes and its frame files. A camera orbits the scene at a fraction of
+the frame's size (the add-on's frames while the view moves; each request sent when the frame
+before it is read), then rests and asks for the whole frame.
+
+Reported: the server's start (spawned to ready: torch's import, the model's load and its
+renderer's caches), each orbit frame from request to pixels copied out of the frame file
+(what a frame costs the add-on's timer, upload and drawing apart) and the frames a second that
+makes, and the full frame's time after the rest.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from nerf_contract import commands, view_frames
+
+from ..configs.train_config import TrainConfig
+from ..core.devices import machine_record, machine_words
+from ..core.errors import NerfError
+from ..core.files import write_json
+from ..data.dataset import load_scene_bounds, load_split
+from ..data.run_folder import RunFolder
+from ..model_components.ray_bounds import PROTOCOL_BOX, choose_ray_bounds
+
+NEAR, FAR = 0.05, 1000.0
+
+
+def orbit_view(centre: torch.Tensor, radius: float, azimuth: float, elevation: float) -> torch.Tensor:
+    """World-to-camera matrix of a camera on a sphere around ``centre`` looking at it, +Z up
+    (Blender's world).
+
+    Example:
+        >>> view = orbit_view(torch.zeros(3), 4.0, 0.0, 0.0)
+        >>> (view @ torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)).tolist()  # 4 ahead
+        [0.0, 0.0, -4.0, 1.0]
+    """
+    eye = centre.double() + radius * torch.tensor([math.cos(elevation) * math.cos(azimuth),
+                                                   math.cos(elevation) * math.sin(azimuth), math.sin(elevation)],
+                                                  dtype=torch.float64)
+    back = torch.nn.functional.normalize(eye - centre.double(), dim=0)
+    right = torch.nn.functional.normalize(torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64),
+                                                             back), dim=0)
+    up = torch.linalg.cross(back, right)
+    pose = torch.eye(4, dtype=torch.float64)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, up, back, eye
+    return torch.linalg.inv(pose)
+
+
+def projection(fl_x: float, fl_y: float, width: int, height: int) -> list[list[float]]:
+    """OpenGL's projection of a centred pinhole camera of focal lengths ``fl_x, fl_y`` (pixels)
+    at ``width × height``: the same at any size it is drawn at."""
+    return [[2 * fl_x / width, 0.0, 0.0, 0.0], [0.0, 2 * fl_y / height, 0.0, 0.0],
+            [0.0, 0.0, -(FAR + NEAR) / (FAR - NEAR), -2 * FAR * NEAR / (FAR - NEAR)], [0.0, 0.0, -1.0, 0.0]]
+
+
+class _Server:
+    def __init__(self, run: Path, frames: Path, device: str):
+        start = time.perf_counter()
+        self.log = frames / "serve.log"  # its stderr: the line it stops with, or its error
+        with open(self.log, "w") as log:
+            self.process = subprocess.Popen(commands.backend_command(sys.executable, commands.serve_argv(
+                str(run), str(frames), device=device)), stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log,
+                text=True)
+        self.ready = self.event()
+        self.start_seconds = time.perf_counter() - start
+
+    def event(self) -> dict:
+        line = self.process.stdout.readline()
+        event = view_frames.parse_event(line)
+        if event is None or event["event"] in (view_frames.ERROR, view_frames.EXIT):
+            self.process.kill()
+            self.process.wait()
+            said = self.log.read_text().strip().splitlines()[-1:] or [line.strip()]
+            raise NerfError(f"bench-view: the server stopped: {said[0]}")
+        return event
+
+    def frame(self, request: str) -> tuple[float, float]:
+        """Seconds from request to pixels copied, and the server's own render seconds."""
+        start = time.perf_counter()
+        self.process.stdin.write(request + "\n")
+        self.process.stdin.flush()
+        event = self.event()
+        while event["event"] != view_frames.FRAME:
+            event = self.event()
+        frames = view_frames.FrameFile.open(event["file"])
+        copied = frames.read(event["slot"], event["sequence"])
+        frames.close()
+        if copied is None:
+            raise NerfError("bench-view: a frame was overwritten before it was read")
+        return time.perf_counter() - start, event["seconds"]
+
+    def stop(self) -> None:
+        self.process.stdin.close()
+        self.process.wait(timeout=60)
+
+
+def view_speed(run: Path, out_dir: Path, size: int | None = None, fraction: float = 0.25, frames: int = 30,
+               device: str = "cpu") -> dict:
+    """Times the live view of ``run`` (see the module's text); writes ``view_speed.json`` and
+    ``view_speed.md`` into ``out_dir``."""
+    stored = RunFolder(run).read_config()
+    test = load_split(stored["dataset"], "test")
+    intrinsics = test.intrinsics
+    width = size or intrinsics.width
+    height = round(width * intrinsics.height / intrinsics.width)
+    config = TrainConfig.from_dict(stored["config"])
+    box = choose_ray_bounds(config.ray_bounds, load_scene_bounds(stored["dataset"]))[0].box or PROTOCOL_BOX
+    centre = torch.tensor([(low + high) / 2 for low, high in zip(box.box_min, box.box_max)])
+    radius = float((test.poses[:, :3, 3] - centre).norm(dim=-1).mean())
+    fl_x, fl_y = intrinsics.fl_x * width / intrinsics.width, intrinsics.fl_y * height / intrinsics.height
+    small = (max(1, round(width * fraction)), max(1, round(height * fraction)))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="nerf_view_") as folder:
+        server = _Server(run, Path(folder), device)
+        orbit = []
+        for index in range(frames + 1):  # the first is a warm-up, untimed
+            view = orbit_view(centre, radius, 2 * math.pi * index / frames, math.radians(30)).tolist()
+            request = view_frames.render_request(index, view_matrix=view, projection_matrix=projection(
+                fl_x, fl_y, width, height), width=small[0], height=small[1])
+            timing = server.frame(request)
+            if index:
+                orbit.append(timing)
+        rest_view = orbit_view(centre, radius, 0.0, math.radians(30)).tolist()
+        full = server.frame(view_frames.render_request(frames + 1, view_matrix=rest_view, projection_matrix=projection(
+            fl_x, fl_y, width, height), width=width, height=height))
+        server.stop()
+    seconds = [total for total, _ in orbit]
+    report = {
+        "run": str(Path(run).resolve()), "device": device, "machine": machine_record(torch.device(device)),
+        "iteration": server.ready.get("iteration"), "region": [width, height], "orbit_size": list(small),
+        "start_seconds": server.start_seconds,
+        "orbit": {"frames": frames, "median_seconds": statistics.median(seconds), "slowest_seconds": max(seconds),
+                  "frames_per_second": 1.0 / statistics.median(seconds),
+                  "render_median_seconds": statistics.median(render for _, render in orbit)},
+        "full_frame": {"seconds": full[0], "render_seconds": full[1]},
+    }
+    write_json(out_dir / "view_speed.json", report)
+    (out_dir / "view_speed.md").write_text(view_speed_markdown(report))
+    return report
+
+
+def view_speed_markdown(report: dict) -> str:
+    width, height = report["region"]
+    orbit, full = report["orbit"], report["full_frame"]
+    return "\n".join([
+        f"# bench-view: {report['run']} (iteration {report['iteration']})", "",
+        f"{report['device']}, {machine_words(report['machine'])}; region {width}×{height}, orbit frames "
+        f"{report['orbit_size'][0]}×{report['orbit_size'][1]}.", "",
+        "| what | seconds | |", "| --- | ---: | --- |",
+        f"| server start (spawn to ready) | {report['start_seconds']:.2f} | |",
+        f"| orbit frame, request to pixels (median of {orbit['frames']}) | {orbit['median_seconds']:.3f} | "
+        f"{orbit['frames_per_second']:.1f} frames a second; slowest {orbit['slowest_seconds']:.3f} s; "
+        f"rendering {orbit['render_median_seconds']:.3f} s |",
+        f"| full frame after the rest | {full['seconds']:.3f} | rendering {full['render_seconds']:.3f} s |", ""])
