@@ -72,7 +72,9 @@ class OccupancyGrid(nn.Module):
         given ``allowed [Gx, Gy, Gz]``, only those: a prior that knows where nothing can be)."""
         if tuple(cell_max_density.shape) != self.cells:
             raise ValueError(f"expected {self.cells} cell values, got {tuple(cell_max_density.shape)}")
-        occupied = cell_max_density > threshold
+        # In the grid's own layout before combining: a field's densities may come as a
+        # transposed view, and `&` over two layouts gathered byte by byte (0.8 s at 540 cells a side).
+        occupied = (cell_max_density > threshold).contiguous()
         self.occupied.copy_(occupied if allowed is None else occupied & allowed)
 
     def cell_index(self, points: Tensor) -> Tensor:
