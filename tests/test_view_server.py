@@ -283,3 +283,41 @@ def test_bench_view_times_the_server_as_the_add_on_uses_it(trained_run, tmp_path
     assert 0 < report["orbit"]["render_median_seconds"] <= report["orbit"]["median_seconds"]
     assert 0 < report["full_frame"]["render_seconds"] <= report["full_frame"]["seconds"]
     assert "frames a second" in result.stdout and report["start_seconds"] > 0
+
+
+def test_the_add_ons_client_draws_newest_first_and_says_when_the_server_was_killed(trained_run, test_view):
+    """addon/live_view.py (plain Python, as Blender's timer drives it): frames arrive, an older
+    one is never handed out after a newer, a server killed with SIGKILL is reported with no
+    frame drawn after it, a restart works, and stopping leaves no process and no files."""
+    from addon.live_view import LiveViewClient
+    intrinsics, pose = test_view
+    view = torch.linalg.inv(pose.double()).tolist()
+    client = LiveViewClient()
+    client.start(sys.executable, REPO_ROOT, trained_run, device="cpu")
+    folder = client._folder
+
+    def frame_for(width, height):
+        request_id = client.request(view, perspective(intrinsics, width, height), width, height)
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            frame = client.poll_frame()
+            if frame is not None and frame.request_id == request_id:
+                return frame
+            time.sleep(0.01)
+        raise AssertionError(f"no frame; state {client.state()}")
+
+    frame = frame_for(24, 16)
+    assert (frame.width, frame.height, len(frame.rgba), len(frame.depth)) == (24, 16, 24 * 16 * 16, 24 * 16 * 4)
+    assert client.state() == "ready"
+    assert client.poll_frame() is None, "a frame is handed out once"
+    server = client._process
+    os.kill(server.pid, signal.SIGKILL)
+    server.wait()
+    assert client.state().startswith("stopped: ") and "killed" in client.state()
+    assert client.request(view, perspective(intrinsics, 8, 8), 8, 8) is None and client.poll_frame() is None
+    client.start(sys.executable, REPO_ROOT, trained_run, device="cpu")  # the panel's click restarts it
+    assert not folder.exists(), "the killed server's folder is removed at the restart"
+    assert frame_for(8, 8).width == 8
+    pid, folder = client._process.pid, client._folder
+    client.stop()
+    assert client.state() == "off" and not folder.exists() and not _alive(pid)
