@@ -79,6 +79,30 @@ def quit_request() -> str:
     return json.dumps({"request": QUIT})
 
 
+# The events, each built here only (their keys are read by the add-on and bench-view):
+def ready_event(run: str, device: str, iteration: int, pid: int) -> dict:
+    return {"event": READY, "run": run, "device": device, "iteration": iteration, "pid": pid}
+
+
+def frame_event(request_id, file: str, slot: int, sequence: int, width: int, height: int, seconds: float,
+                iteration: int) -> dict:
+    """A frame written: ``file``'s ``slot`` holds it at ``sequence`` (``FrameFile.read``)."""
+    return {"event": FRAME, "id": request_id, "file": file, "slot": slot, "sequence": sequence, "width": width,
+            "height": height, "seconds": round(seconds, 4), "iteration": iteration}
+
+
+def reloaded_event(iteration: int) -> dict:
+    return {"event": RELOADED, "iteration": iteration}
+
+
+def error_event(request_id, message: str) -> dict:
+    return {"event": ERROR, "id": request_id, "message": message}
+
+
+def exit_event(reason: str) -> dict:
+    return {"event": EXIT, "reason": reason}
+
+
 def parse_event(line: str) -> Optional[dict]:
     """The event a line of the server's stdout holds, or None (a line that is no event)."""
     try:

@@ -226,9 +226,8 @@ class FrameWriter:
         del pixels  # the mapping cannot close while a view of it lives
         self.file.end_frame(self.slot, sequence, request_id if isinstance(request_id, int) else -1, width, height,
                             frame.seconds, iteration)
-        return {"event": contract.FRAME, "id": request_id, "file": self.file.path, "slot": self.slot,
-                "sequence": sequence, "width": width, "height": height, "seconds": round(frame.seconds, 4),
-                "iteration": iteration}
+        return contract.frame_event(request_id, self.file.path, self.slot, sequence, width, height, frame.seconds,
+                                    iteration)
 
     def _grow(self, pixels: int) -> None:
         capacity = max(pixels, 2 * self.file.capacity if self.file else 0, 256 * 256)
@@ -278,7 +277,7 @@ def read_requests(stream: IO[str], mailbox: LatestRequest, emit: Callable[[dict]
             mailbox.put(request)
             continue
         try:
-            emit({"event": contract.ERROR, "id": None, "message": f"not a request: {line.strip()[:200]}"})
+            emit(contract.error_event(None, f"not a request: {line.strip()[:200]}"))
         except Closed:
             break
     mailbox.close("its parent closed the request pipe")
@@ -293,8 +292,7 @@ def serve(run: RunFolder, frames: Path, device: torch.device, idle_seconds: floa
     mailbox = LatestRequest()
     try:
         live = LiveModel(run, device)
-        emit({"event": contract.READY, "run": str(run.path), "device": str(device), "iteration": live.iteration,
-              "pid": os.getpid()})
+        emit(contract.ready_event(str(run.path), str(device), live.iteration, os.getpid()))
         threading.Thread(target=read_requests, args=(requests, mailbox, emit), daemon=True).start()
         reason = _render_requests(live, writer, mailbox, emit, idle_seconds)
     except Closed as closed:
@@ -302,7 +300,7 @@ def serve(run: RunFolder, frames: Path, device: torch.device, idle_seconds: floa
     finally:
         writer.close()
     try:
-        emit({"event": contract.EXIT, "reason": reason})
+        emit(contract.exit_event(reason))
     except Closed:
         pass
     return reason
@@ -316,8 +314,8 @@ def _render_requests(live: LiveModel, writer: FrameWriter, mailbox: LatestReques
             return f"idle for {idle_seconds:g} s"
         try:
             if live.refresh():
-                emit({"event": contract.RELOADED, "iteration": live.iteration})
+                emit(contract.reloaded_event(live.iteration))
             frame = live.render(checked_request(request))
             emit(writer.write(frame, request.get("id"), live.iteration))
         except NerfError as exc:
-            emit({"event": contract.ERROR, "id": request.get("id"), "message": str(exc)})
+            emit(contract.error_event(request.get("id"), str(exc)))
