@@ -52,6 +52,7 @@ class LiveViewClient:
         self._newest: dict | None = None  # the newest frame event not handed out yet
         self._handed_out = -1  # the request id of the last frame handed out: never an older one after it
         self._next_id = 0
+        self._failed: list[int] = []  # request ids the server answered with an error
         self._files: dict[str, view_frames.FrameFile] = {}
         self.ready: dict | None = None
         self.exit_reason: str | None = None
@@ -70,7 +71,7 @@ class LiveViewClient:
             self._process = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log,
                                              text=True, env=env)
         self.ready, self.exit_reason, self.last_error = None, None, ""
-        self._newest, self._handed_out = None, -1
+        self._newest, self._handed_out, self._failed = None, -1, []
         threading.Thread(target=self._read_events, args=(self._process,), daemon=True).start()
 
     def _read_events(self, process: subprocess.Popen) -> None:
@@ -86,6 +87,8 @@ class LiveViewClient:
                     self._newest = event
                 elif kind == view_frames.ERROR:
                     self.last_error = event.get("message", "")
+                    if isinstance(event.get("id"), int):
+                        self._failed.append(event["id"])
                 elif kind == view_frames.EXIT:
                     self.exit_reason = event.get("reason", "")
 
@@ -100,6 +103,9 @@ class LiveViewClient:
         if self.running():
             return "ready" if self.ready is not None else "starting"
         reason = self.exit_reason
+        code = self._process.returncode
+        if not reason and code is not None and code < 0:
+            reason = f"the server was killed (signal {-code})"
         if not reason:
             log = self._folder / LOG_NAME if self._folder else None
             tail = log.read_text(errors="replace").strip().splitlines()[-1:] if log and log.is_file() else []
@@ -145,6 +151,12 @@ class LiveViewClient:
             return None  # it died meanwhile: state() says why
         return self._next_id
 
+    def take_failed(self) -> list[int]:
+        """The request ids the server refused since the last call (each with ``last_error``)."""
+        with self._lock:
+            failed, self._failed = self._failed, []
+        return failed
+
     def poll_frame(self) -> LiveFrame | None:
         """The newest frame not handed out yet, copied out of its file; None where there is none,
         where it is older than one handed out already, or where the server overwrote it while
@@ -169,3 +181,147 @@ class LiveViewClient:
         width, height, rgba, depth = copied
         self._handed_out = event["id"]
         return LiveFrame(event["id"], width, height, rgba, depth, event["seconds"], event["iteration"])
+
+
+# --- which view gets the next frame ----------------------------------------------------------
+
+MOVING_DIVISOR = 4  # while the view moves: a quarter of the region's side (1/16 of its pixels)
+REST_SECONDS = 0.25  # a view unchanged this long has come to rest: the whole region is drawn
+LOST_SECONDS = 60.0  # a request unanswered this long is given up (the server restarted, or hung)
+
+
+def _rounded(matrix) -> tuple:
+    return tuple(tuple(round(float(value), 6) for value in row) for row in matrix)
+
+
+@dataclass
+class RegionView:
+    """One 3D View's region as last drawn, and the newest frame it got."""
+
+    view_matrix: tuple
+    projection_matrix: tuple
+    width: int
+    height: int
+    nerf_to_world: tuple | None
+    changed_at: float
+    frame: LiveFrame | None = None
+    frame_signature: tuple | None = None  # the view the frame was rendered for
+    frame_full: bool = False
+
+    @property
+    def signature(self) -> tuple:
+        return self.view_matrix, self.projection_matrix, self.width, self.height, self.nerf_to_world
+
+    def wants(self, now: float) -> tuple[int, int] | None:
+        """The size of frame this region needs next, or None where its frame is current."""
+        resting = now - self.changed_at >= REST_SECONDS
+        if self.frame_signature == self.signature and (self.frame_full or not resting):
+            return None
+        if resting:
+            return self.width, self.height
+        return max(1, -(-self.width // MOVING_DIVISOR)), max(1, -(-self.height // MOVING_DIVISOR))
+
+
+@dataclass(frozen=True)
+class ViewRequest:
+    key: object
+    view_matrix: tuple
+    projection_matrix: tuple
+    width: int
+    height: int
+    nerf_to_world: tuple | None
+    signature: tuple
+    full: bool
+
+
+class ViewScheduler:
+    """Which 3D View the server renders next, and at what size: one request in flight at a
+    time (a frame is rendered for the view as it is when the server gets to it, never queued
+    behind stale ones), a quarter of the region's side while its view moves, the whole region
+    once it has rested for REST_SECONDS; moving views first, then the others in turn, so
+    several 3D Views all get drawn. Plain Python: the viewport's draw handler reports each
+    region's view, Blender's timer asks for the next request and hands back the frames.
+
+    Example:
+        >>> scheduler = ViewScheduler()
+        >>> identity = [[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]
+        >>> scheduler.update("view", identity, identity, 400, 300, now=0.0)
+        >>> request = scheduler.next_request(now=0.1)
+        >>> request.width, request.height, request.full   # moving: a quarter of each side
+        (100, 75, False)
+        >>> scheduler.sent(1, request, now=0.1)
+        >>> scheduler.next_request(now=0.2) is None   # one in flight at a time
+        True
+        >>> scheduler.delivered(LiveFrame(1, 100, 75, b"", b"", 0.05, 0))
+        'view'
+        >>> scheduler.next_request(now=0.5).full   # at rest: the whole region
+        True
+    """
+
+    def __init__(self) -> None:
+        self.regions: dict[object, RegionView] = {}
+        self._in_flight: tuple[int, ViewRequest, float] | None = None
+        self._turn = 0
+
+    def update(self, key, view_matrix, projection_matrix, width: int, height: int, now: float,
+               nerf_to_world=None) -> None:
+        """The region's view as it is drawn now (called on every redraw; cheap when unchanged)."""
+        signature = (_rounded(view_matrix), _rounded(projection_matrix), int(width), int(height),
+                     None if nerf_to_world is None else _rounded(nerf_to_world))
+        region = self.regions.get(key)
+        if region is None:
+            self.regions[key] = RegionView(*signature, changed_at=now)
+        elif region.signature != signature:
+            (region.view_matrix, region.projection_matrix, region.width, region.height,
+             region.nerf_to_world) = signature
+            region.changed_at = now
+
+    def keep_only(self, keys) -> None:
+        """Forgets regions that are gone (an area closed, a window or file changed)."""
+        for key in set(self.regions) - set(keys):
+            del self.regions[key]
+
+    def clear(self) -> None:
+        self.regions.clear()
+        self._in_flight = None
+
+    def next_request(self, now: float) -> ViewRequest | None:
+        if self._in_flight is not None:
+            if now - self._in_flight[2] < LOST_SECONDS:
+                return None
+            self._in_flight = None
+        keys = list(self.regions)
+        if not keys:
+            return None
+        order = keys[self._turn % len(keys):] + keys[:self._turn % len(keys)]
+        moving = [key for key in order if now - self.regions[key].changed_at < REST_SECONDS]
+        for key in moving + [key for key in order if key not in moving]:
+            region = self.regions[key]
+            size = region.wants(now)
+            if size is not None:
+                self._turn = keys.index(key) + 1
+                full = size == (region.width, region.height)
+                return ViewRequest(key, region.view_matrix, region.projection_matrix, size[0], size[1],
+                                   region.nerf_to_world, region.signature, full)
+        return None
+
+    def sent(self, request_id: int, request: ViewRequest, now: float) -> None:
+        self._in_flight = (request_id, request, now)
+
+    def failed(self, request_ids) -> None:
+        """The server refused these requests: the next one may go."""
+        if self._in_flight is not None and self._in_flight[0] in request_ids:
+            self._in_flight = None
+
+    def delivered(self, frame: LiveFrame):
+        """Files ``frame`` with the region it was rendered for; that region's key, or None
+        (the region is gone, or the frame answers no request in flight)."""
+        if self._in_flight is None or self._in_flight[0] != frame.request_id:
+            return None
+        _, request, _ = self._in_flight
+        self._in_flight = None
+        region = self.regions.get(request.key)
+        if region is None:
+            return None
+        region.frame, region.frame_signature, region.frame_full = frame, request.signature, request.full
+        return request.key

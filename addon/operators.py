@@ -7,24 +7,28 @@ process.
 By concern: ``dataset_ops`` (Generate Dataset), ``training_ops`` (Train, Resume, Cancel, Set
 Up Backend), ``results_ops`` (Render Test Views, Render Active Camera, Compare with Cycles,
 Open Report), ``animation_ops`` (Render Camera Animation, its Cancel, Import NeRF Mesh, Import
-NeRF Asset and its Cancel); ``paths``, ``images`` and ``scene_import`` are what they share."""
+NeRF Asset and its Cancel), ``live_view_ops`` (Live View, drawn by ``viewport_overlay``);
+``paths``, ``images`` and ``scene_import`` are what they share."""
 
 from __future__ import annotations
 
 import bpy
 
-from . import animation_ops, dataset_ops, job_timer, results_ops, training_ops
+from . import animation_ops, dataset_ops, job_timer, live_view_ops, results_ops, training_ops, viewport_overlay
 
-CLASSES = (*dataset_ops.CLASSES, *training_ops.CLASSES, *results_ops.CLASSES, *animation_ops.CLASSES)
+CLASSES = (*dataset_ops.CLASSES, *training_ops.CLASSES, *results_ops.CLASSES, *animation_ops.CLASSES,
+           *live_view_ops.CLASSES)
 
 
 def register() -> None:
     for cls in CLASSES:
         bpy.utils.register_class(cls)
     job_timer.register()
+    viewport_overlay.register()
 
 
 def unregister() -> None:
+    viewport_overlay.unregister()
     job_timer.unregister()
     for cls in reversed(CLASSES):
         bpy.utils.unregister_class(cls)

@@ -9,8 +9,11 @@ from __future__ import annotations
 
 import json
 
+import time
+
 import bpy
 
+from . import viewport_overlay
 from .images import COMPARISON_IMAGE, PREVIEW_IMAGE
 from .job_timer import status
 from .paths import animation_dir, asset_dir, backend_python, dataset_dir, run_dir, torch_build
@@ -199,8 +202,42 @@ class NERF_PT_results_comparison(_NerfPanel, bpy.types.Panel):
             _text(layout, context, f"Side by side: image '{COMPARISON_IMAGE}'", icon="IMAGE_DATA")
 
 
+class NERF_PT_results_live_view(_NerfPanel, bpy.types.Panel):
+    """The NeRF drawn in the 3D Views beside the scene, from any view (a render server)."""
+
+    bl_label = "Live View"
+    bl_parent_id = "NERF_PT_results"
+
+    def draw(self, context):
+        s, layout = context.scene.nerf, _split(self.layout)
+        state = viewport_overlay.state()
+        on = state in ("starting", "ready")
+        text = "Stop Live View" if on else "Restart Live View" if state.startswith("stopped") else "Live View"
+        layout.operator("nerf.live_view", text=text, icon="HIDE_OFF" if on else "HIDE_ON", depress=on)
+        layout.prop(s, "live_view_anchor")
+        if state == "starting":
+            _text(layout, context, "Loading the model in the render server", icon="TIME")
+        elif state == "ready":
+            _text(layout, context, _live_view_rate(), icon="CHECKMARK")
+        elif state.startswith("stopped"):
+            box = layout.box()
+            box.alert = True
+            _text(box, context, f"Live view {state}", icon="ERROR")
+
+
+def _live_view_rate() -> str:
+    """'7.4 frames/s, 0.13 s each, iteration 3000': the last two seconds' frames."""
+    stats, now = viewport_overlay.stats, time.monotonic()
+    recent = [at for at, _, _ in stats.delivered_at if now - at < 2.0]
+    iteration = stats.iteration
+    parts = [f"{len(recent) / 2.0:.1f} frames/s" if len(recent) > 1 else "Drawn",
+             f"{stats.render_seconds[-1]:.2f} s each" if stats.render_seconds else "",
+             f"iteration {iteration}" if iteration is not None else ""]
+    return ", ".join(filter(None, parts))
+
+
 CLASSES = (NERF_PT_dataset, NERF_PT_dataset_rendering, NERF_PT_training, NERF_PT_training_preview,
-           NERF_PT_results, NERF_PT_results_comparison, NERF_PT_results_animation)
+           NERF_PT_results, NERF_PT_results_comparison, NERF_PT_results_animation, NERF_PT_results_live_view)
 
 
 def register() -> None:

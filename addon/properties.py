@@ -66,6 +66,11 @@ class NerfSettings(bpy.types.PropertyGroup):
     asset_texture_size: EnumProperty(
         name="Texture", default="2048", description="The NeRF asset's texture size",
         items=tuple((str(n), f"{n} px", f"A {n}×{n} texture") for n in (512, 1024, 2048, 4096)))
+    # The live view
+    live_view_anchor: PointerProperty(
+        name="Move With", type=bpy.types.Object, poll=lambda _settings, obj: obj.type == "EMPTY",
+        description="An Empty whose transform moves the NeRF in the live view (none: the NeRF sits where the "
+                    "dataset's scene was, over its objects)")
     # Results of the last comparison (shown in the panel).
     # The last comparison's metrics as the backend lists them (compare.json's "metrics" table):
     # JSON rows {"key", "label", "value", "text"}; "" before any comparison.

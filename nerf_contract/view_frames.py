@@ -80,8 +80,11 @@ def quit_request() -> str:
 
 
 # The events, each built here only (their keys are read by the add-on and bench-view):
-def ready_event(run: str, device: str, iteration: int, pid: int) -> dict:
-    return {"event": READY, "run": run, "device": device, "iteration": iteration, "pid": pid}
+def ready_event(run: str, device: str, iteration: int, pid: int, nerf_to_world: Sequence[Sequence[float]]) -> dict:
+    """The model is loaded. ``nerf_to_world``: where the dataset took the NeRF's frame from (the
+    default placement; an add-on moving it with an object composes its matrix with this one)."""
+    return {"event": READY, "run": run, "device": device, "iteration": iteration, "pid": pid,
+            "nerf_to_world": [list(map(float, row)) for row in nerf_to_world]}
 
 
 def frame_event(request_id, file: str, slot: int, sequence: int, width: int, height: int, seconds: float,

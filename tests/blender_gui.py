@@ -24,6 +24,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -176,6 +177,77 @@ def ensure_chroot(suite: str = "trixie", log=print) -> Path:
         _remove_unmounted(root)
     partial.rename(root)
     return root
+
+
+SCREEN = "1600x1000x24"
+DISPLAY = ":99"
+
+
+def in_chroot(chroot: Path, work: Path, *command: str, **kwargs) -> subprocess.Popen:
+    """``command`` started in the chroot with a clean environment, in ``work``, on the Xvfb display."""
+    environment = {"HOME": str(work / "home"), "PATH": "/usr/bin:/bin", "DISPLAY": DISPLAY,
+                   "LIBGL_ALWAYS_SOFTWARE": "1", "BROWSER": str(work / "browser")}
+    return subprocess.Popen(["chroot", str(chroot), "/usr/bin/env", "-i", *(f"{k}={v}" for k, v in environment.items()),
+                             "/usr/bin/env", "-C", str(work), *command], **kwargs)
+
+
+def kill_processes_using(folder: Path) -> None:
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            if int(cmdline.parent.name) != os.getpid() and str(folder) in cmdline.read_bytes().decode(errors="replace"):
+                os.kill(int(cmdline.parent.name), 9)
+        except (OSError, ValueError):
+            continue
+
+
+def run_session(chroot: Path, work: Path, script: Path, *arguments: str, blend: Path | None = None,
+                timeout: float = 1500) -> str:
+    """The add-on's extension built and installed in the chroot's Blender, then ``script`` run in
+    its GUI under Xvfb (``--enable-event-simulate``; ``blend`` opened first) with ``WORK
+    BACKEND_PYTHON ARGUMENTS`` after ``--``; returns Blender's console. The backend's Python is
+    this one (the project's .venv on the host), reached through ``chroot /host``; ``$BROWSER``
+    records URLs in WORK/browser_urls.txt."""
+    from conftest import REPO_ROOT, run_python
+
+    (work / "home").mkdir(exist_ok=True)
+    run_python(str(REPO_ROOT / "tools" / "build_extension.py"), "--out", str(work))
+    extension = next(work.glob("nerf_from_blender-*.zip"))
+    for helper in script.parent.glob("*_session.py"):  # a session imports the driver of another
+        shutil.copy(helper, work)
+    backend = work / "backend-python"
+    backend.write_text(f'#!/bin/sh\nexec /usr/sbin/chroot /host /usr/bin/env -C "$PWD" "{sys.executable}" "$@"\n')
+    browser = work / "browser"  # records the URL instead of opening it
+    browser.write_text(f'#!/bin/sh\necho "$1" >> "{work / "browser_urls.txt"}"\n')
+    for stub in (backend, browser):
+        stub.chmod(0o755)
+    with mounted(chroot, (work,), host=True):
+        install = in_chroot(chroot, work, "blender", "--command", "extension", "install-file", "-r", "user_default",
+                            "-e", str(extension), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        output = install.communicate(timeout=300)[0]
+        if install.returncode != 0:
+            raise RuntimeError(f"installing {extension.name} failed:\n{output}")
+        xvfb = in_chroot(chroot, work, "Xvfb", DISPLAY, "-screen", "0", SCREEN, "-nolisten", "tcp",
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            deadline = time.monotonic() + 30
+            while not (chroot / "tmp" / ".X11-unix" / f"X{DISPLAY[1:]}").exists():
+                if time.monotonic() > deadline or xvfb.poll() is not None:
+                    raise RuntimeError("Xvfb did not start")
+                time.sleep(0.2)
+            blender = in_chroot(chroot, work, "blender", "--factory-startup", "--enable-event-simulate",
+                                "--python-exit-code", "1", *([str(blend)] if blend else []),
+                                "--python", str(work / script.name), "--", str(work), str(backend), *arguments,
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            try:
+                console = blender.communicate(timeout=timeout)[0]
+            except subprocess.TimeoutExpired:
+                blender.kill()
+                console = blender.communicate()[0]
+        finally:
+            xvfb.terminate()
+            xvfb.wait(timeout=30)
+            kill_processes_using(work)  # a job the session could not stop (it was killed, or timed out)
+    return console
 
 
 def blender_version(suite: str = "trixie") -> str:

@@ -24,14 +24,15 @@ from conftest import REPO_ROOT, SHARED_DIR, run_python
 from nerf_backend.metrics.image_metrics import psnr
 
 PANELS = {"NERF_PT_dataset", "NERF_PT_dataset_rendering", "NERF_PT_training", "NERF_PT_training_preview",
-          "NERF_PT_results", "NERF_PT_results_comparison", "NERF_PT_results_animation"}
+          "NERF_PT_results", "NERF_PT_results_comparison", "NERF_PT_results_animation", "NERF_PT_results_live_view"}
 # Every operator is run in the session except Set Up Backend, which would pip-install the
-# shipped requirements (a GPU build of torch; its work is tested through BackendSetup), and the
-# animation's Cancel, whose job is cancelled and resumed in test_addon_jobs.
+# shipped requirements (a GPU build of torch; its work is tested through BackendSetup), the
+# animation's Cancel, whose job is cancelled and resumed in test_addon_jobs, and Live View,
+# which draws in a GUI's 3D View (tests/test_gui_live_view.py, in Blender's GUI under Xvfb).
 OPERATORS = {"NERF_OT_generate_dataset", "NERF_OT_train", "NERF_OT_cancel_training", "NERF_OT_render_test_views",
              "NERF_OT_render_active_camera", "NERF_OT_compare", "NERF_OT_open_report", "NERF_OT_setup_backend",
              "NERF_OT_render_animation", "NERF_OT_cancel_animation", "NERF_OT_import_mesh", "NERF_OT_import_asset",
-             "NERF_OT_cancel_asset"}
+             "NERF_OT_cancel_asset", "NERF_OT_live_view"}
 # Measured: the fast preset, 300 iterations on a 32×32 dataset of A.blend (24 training views),
 # rendering test pose 1 from the active camera scored 30.47 dB (SSIM 0.978) against Cycles.
 # The floor leaves room for run-to-run variation.

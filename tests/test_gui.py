@@ -12,8 +12,6 @@ import json
 import os
 import shutil
 import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -24,14 +22,12 @@ from conftest import REPO_ROOT, run_python
 
 pytestmark = pytest.mark.gui
 
-SCREEN = "1600x1000x24"
-DISPLAY = ":99"
 STATES = ("01_idle", "02_failed", "03_dataset_dialog", "04_dataset_rendering", "05_dataset_done", "06_training",
           "07_cancelled", "08_trained", "09_results", "10_compared", "11_compare_numbers")
 ARTIFACTS = Path(os.environ.get("NERF_GUI_SCREENSHOTS", REPO_ROOT / "out" / "gui-screenshots"))
 
 
-def _chroot(suite: str) -> Path:
+def chroot_or_skip(suite: str) -> Path:
     try:
         return blender_gui.ensure_chroot(suite)
     except RuntimeError as error:
@@ -40,74 +36,30 @@ def _chroot(suite: str) -> Path:
         pytest.skip(f"the Blender GUI chroot cannot be built here: {error}")
 
 
-def _in_chroot(chroot: Path, work: Path, *command: str, **kwargs) -> subprocess.Popen:
-    environment = {"HOME": str(work / "home"), "PATH": "/usr/bin:/bin", "DISPLAY": DISPLAY,
-                   "LIBGL_ALWAYS_SOFTWARE": "1", "BROWSER": str(work / "browser")}
-    return subprocess.Popen(["chroot", str(chroot), "/usr/bin/env", "-i", *(f"{k}={v}" for k, v in environment.items()),
-                             "/usr/bin/env", "-C", str(work), *command], **kwargs)
-
-
-def _kill_processes_using(folder: Path) -> None:
-    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
-        try:
-            if int(cmdline.parent.name) != os.getpid() and str(folder) in cmdline.read_bytes().decode(errors="replace"):
-                os.kill(int(cmdline.parent.name), 9)
-        except (OSError, ValueError):
-            continue
-
-
 @pytest.fixture(scope="module", params=blender_gui.SUITES)
 def gui(request, tmp_path_factory):
     suite = request.param
-    chroot = _chroot(suite)
+    chroot = chroot_or_skip(suite)
     work = tmp_path_factory.mktemp(f"gui-{suite}")
-    (work / "home").mkdir()
-    run_python(str(REPO_ROOT / "tools" / "build_extension.py"), "--out", str(work))
-    extension = next(work.glob("nerf_from_blender-*.zip"))
-    shutil.copy(REPO_ROOT / "tests" / "blender_scripts" / "gui_session.py", work)
-    # The backend's Python as seen from the chroot: the project's .venv on the host, through /host.
-    backend = work / "backend-python"
-    backend.write_text(f'#!/bin/sh\nexec /usr/sbin/chroot /host /usr/bin/env -C "$PWD" "{sys.executable}" "$@"\n')
-    browser = work / "browser"  # records the URL instead of opening it
-    browser.write_text(f'#!/bin/sh\necho "$1" >> "{work / "browser_urls.txt"}"\n')
-    for script in (backend, browser):
-        script.chmod(0o755)
-    with blender_gui.mounted(chroot, (work,), host=True):
-        install = _in_chroot(chroot, work, "blender", "--command", "extension", "install-file", "-r", "user_default",
-                             "-e", str(extension), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        output = install.communicate(timeout=300)[0]
-        assert install.returncode == 0, output
-        xvfb = _in_chroot(chroot, work, "Xvfb", DISPLAY, "-screen", "0", SCREEN, "-nolisten", "tcp",
-                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        try:
-            deadline = time.monotonic() + 30
-            while not (chroot / "tmp" / ".X11-unix" / f"X{DISPLAY[1:]}").exists():
-                assert time.monotonic() < deadline and xvfb.poll() is None, "Xvfb did not start"
-                time.sleep(0.2)
-            blender = _in_chroot(chroot, work, "blender", "--factory-startup", "--enable-event-simulate", "--python-exit-code", "1",
-                                 "--python", str(work / "gui_session.py"), "--", str(work), str(backend),
-                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-            try:
-                console = blender.communicate(timeout=1500)[0]
-            except subprocess.TimeoutExpired:
-                blender.kill()
-                console = blender.communicate()[0]
-        finally:
-            xvfb.terminate()
-            xvfb.wait(timeout=30)
-            _kill_processes_using(work)  # a job the session could not stop (it was killed, or timed out)
-    (work / "console.txt").write_text(console)
+    console = blender_gui.run_session(chroot, work, REPO_ROOT / "tests" / "blender_scripts" / "gui_session.py")
     report = json.loads((work / "gui_report.json").read_text()) if (work / "gui_report.json").is_file() else {}
-    artifacts = ARTIFACTS / suite
-    artifacts.mkdir(parents=True, exist_ok=True)
-    for old in artifacts.glob("*.png"):  # a former run's, which this one may not replace
-        old.unlink()
-    for png in [*(work / "screenshots").glob("[0-9]*.png"), *(work / "screenshots").glob("zz_*.png")]:
-        shutil.copy(png, artifacts / png.name)
-    shutil.copy(work / "console.txt", artifacts / "console.txt")
-    if (work / "gui_report.json").is_file():
-        shutil.copy(work / "gui_report.json", artifacts / "gui_report.json")
+    keep_artifacts(ARTIFACTS / suite, work, console, "gui_report.json", ("[0-9]*.png", "zz_*.png"))
     return {"report": report, "console": console, "work": work, "version": blender_gui.blender_version(suite)}
+
+
+def keep_artifacts(folder: Path, work: Path, console: str, report_name: str, patterns: tuple[str, ...]) -> None:
+    """The session's screenshots (``patterns``), console and report kept in ``folder``, a former
+    run's screenshots removed first (this one may not replace them all)."""
+    (work / "console.txt").write_text(console)
+    folder.mkdir(parents=True, exist_ok=True)
+    for old in folder.glob("*.png"):
+        old.unlink()
+    for pattern in patterns:
+        for png in (work / "screenshots").glob(pattern):
+            shutil.copy(png, folder / png.name)
+    shutil.copy(work / "console.txt", folder / "console.txt")
+    if (work / report_name).is_file():
+        shutil.copy(work / report_name, folder / report_name)
 
 
 def test_the_whole_flow_runs_through_real_clicks(gui):
@@ -196,7 +148,7 @@ def test_the_extension_repository_installs_in_blender_and_matches_its_own_listin
     """`make extension`'s repository: the zip passes Blender's `extension validate`; index.json is
     what Blender's `extension server-generate` writes for the same folder; and Blender, given
     the repository's URL once, installs and enables the add-on from it."""
-    chroot = _chroot(suite)
+    chroot = chroot_or_skip(suite)
     repo, reference = tmp_path / "repo", tmp_path / "reference"
     result = run_python(str(REPO_ROOT / "tools" / "build_extension.py"), "--out", str(repo))
     assert "repository listing" in result.stdout
@@ -206,7 +158,7 @@ def test_the_extension_repository_installs_in_blender_and_matches_its_own_listin
     (tmp_path / "home").mkdir()
 
     def extension(*arguments: str) -> str:
-        process = _in_chroot(chroot, tmp_path, "blender", "--online-mode", "--command", "extension", *arguments,
+        process = blender_gui.in_chroot(chroot, tmp_path, "blender", "--online-mode", "--command", "extension", *arguments,
                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         output = process.communicate(timeout=300)[0]
         assert process.returncode == 0, f"extension {' '.join(arguments)}:\n{output}"

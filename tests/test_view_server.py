@@ -321,3 +321,46 @@ def test_the_add_ons_client_draws_newest_first_and_says_when_the_server_was_kill
     pid, folder = client._process.pid, client._folder
     client.stop()
     assert client.state() == "off" and not folder.exists() and not _alive(pid)
+
+
+def test_the_scheduler_serves_moving_views_first_then_every_view_in_turn():
+    """Several 3D Views: one request in flight; a moving view gets quarter frames before any
+    other is served; at rest every view gets its whole region in turn; a frame is filed with
+    the view it was asked for, and a region that goes is forgotten."""
+    from addon.live_view import REST_SECONDS, LiveFrame, ViewScheduler
+
+    def frame(request_id, request):
+        return LiveFrame(request_id, request.width, request.height, b"", b"", 0.01, 0)
+
+    eye = np.eye(4).tolist()
+    moved = np.eye(4)
+    moved[0, 3] = 0.5  # the view slid sideways
+    moved = moved.tolist()
+    scheduler = ViewScheduler()
+    for key in ("a", "b", "c"):
+        scheduler.update(key, eye, eye, 401, 300, now=0.0)
+    served, now = [], 1.0
+    for request_id in range(1, 4):  # at rest: each of the three, whole, in turn
+        request = scheduler.next_request(now)
+        scheduler.sent(request_id, request, now)
+        assert scheduler.next_request(now) is None  # one at a time
+        assert scheduler.delivered(frame(request_id, request)) == request.key
+        served.append((request.key, request.width, request.height, request.full))
+    assert sorted(served) == [(key, 401, 300, True) for key in "abc"]
+    assert scheduler.next_request(now) is None  # every view is current
+    scheduler.update("b", moved, eye, 401, 300, now=now)  # b's view moves
+    request = scheduler.next_request(now + 0.01)
+    assert (request.key, request.width, request.height, request.full) == ("b", 101, 75, False)
+    scheduler.sent(10, request, now)
+    scheduler.update("b", eye, eye, 401, 300, now=now + 0.05)  # moved again before the frame came
+    assert scheduler.delivered(frame(10, request)) == "b"
+    assert scheduler.regions["b"].frame_signature != scheduler.regions["b"].signature  # drawn, yet stale
+    request = scheduler.next_request(now + 0.06)
+    assert (request.key, request.full) == ("b", False)  # still moving: a quarter frame of the new view
+    scheduler.sent(11, request, now)
+    scheduler.failed([11])  # refused by the server: the next may go
+    request = scheduler.next_request(now + 0.05 + REST_SECONDS)
+    assert (request.key, request.full) == ("b", True)  # at rest: the whole region
+    scheduler.sent(12, request, now)
+    scheduler.keep_only({"a", "c"})  # b's area closed meanwhile
+    assert scheduler.delivered(frame(12, request)) is None and set(scheduler.regions) == {"a", "c"}

@@ -292,7 +292,7 @@ def serve(run: RunFolder, frames: Path, device: torch.device, idle_seconds: floa
     mailbox = LatestRequest()
     try:
         live = LiveModel(run, device)
-        emit(contract.ready_event(str(run.path), str(device), live.iteration, os.getpid()))
+        emit(contract.ready_event(str(run.path), str(device), live.iteration, os.getpid(), live.nerf_to_world.tolist()))
         threading.Thread(target=read_requests, args=(requests, mailbox, emit), daemon=True).start()
         reason = _render_requests(live, writer, mailbox, emit, idle_seconds)
     except Closed as closed:

@@ -301,15 +301,20 @@ def label_widths() -> None:
                         "texts": labels, "flag_buttons": flags}
 
 
-def flow():
+def enable_add_on():
+    """The add-on enabled, the backend's Python chosen and checked (as a user does once)."""
     bpy.ops.preferences.addon_enable(module=MODULE)
-    settings = bpy.context.scene.nerf
     preferences = bpy.context.preferences.addons[MODULE].preferences
     preferences.python_path = BACKEND_PYTHON
     log(f"enabled {MODULE}; backend {BACKEND_PYTHON}")
     ok, message = sys.modules[MODULE + ".backend_setup"].check_backend(BACKEND_PYTHON)
     assert ok, f"the backend's Python cannot run from this Blender: {message}"
     log(f"backend: {message}")
+    yield 0.1
+
+
+def open_nerf_tab():
+    """The splash closed, the 3D View's sidebar opened on its NeRF tab."""
     yield from key("ESC")  # the splash screen, which --factory-startup shows over the 3D View
     window, area, region = view3d()
     area.spaces.active.show_region_ui = True
@@ -323,6 +328,13 @@ def flow():
             yield 0.25
     else:
         raise AssertionError("the sidebar's NeRF tab could not be opened")
+
+
+def flow():
+    yield from enable_add_on()
+    settings = bpy.context.scene.nerf
+    yield from open_nerf_tab()
+    window = view3d()[0]
     report["panel_regions"] = {"window": [window.width, window.height], "sidebar": [view3d()[2].width, view3d()[2].height]}
     settings.dataset_dir = str(WORK / "dataset")
     settings.run_dir = str(WORK / "run_too_early")
@@ -494,7 +506,9 @@ def quit_blender() -> None:
         bpy.ops.wm.quit_blender()
 
 
-def main() -> None:
+def main(flow) -> None:
+    """Runs the generator ``flow`` from Blender's timers (each yield: seconds until the next
+    step), then quits; every failure goes to the report."""
     SHOTS.mkdir(parents=True, exist_ok=True)
     steps = flow()
 
@@ -506,10 +520,13 @@ def main() -> None:
         except Exception:  # noqa: BLE001 - every failure goes to the report, then Blender quits
             report["error"] = traceback.format_exc()
             print(report["error"], flush=True)
-            report["status_at_error"] = {folder: repr(status) for folder, status in job_timer().status.items()}
-            for job in job_timer()._jobs.values():  # a backend left running would slow every later test
-                if job.is_running():
-                    job.kill()
+            if MODULE + ".job_timer" in sys.modules:  # the add-on may be disabled at the time
+                report["status_at_error"] = {folder: repr(status) for folder, status in job_timer().status.items()}
+                for job in job_timer()._jobs.values():  # a backend left running would slow every later test
+                    if job.is_running():
+                        job.kill()
+            if MODULE + ".viewport_overlay" in sys.modules:
+                sys.modules[MODULE + ".viewport_overlay"].stop()
             try:
                 subprocess.run(["import", "-window", "root", str(SHOTS / "zz_at_error.png")], timeout=60)
             except (OSError, subprocess.SubprocessError):
@@ -518,7 +535,8 @@ def main() -> None:
         bpy.app.timers.register(quit_blender, first_interval=0.5)
         return None
 
-    bpy.app.timers.register(tick, first_interval=2.0)
+    bpy.app.timers.register(tick, first_interval=2.0, persistent=True)
 
 
-main()
+if __name__ == "__main__":
+    main(flow)
