@@ -274,11 +274,28 @@ def _alive(pid: int) -> bool:
     return not (status.exists() and "State:\tZ" in status.read_text())
 
 
-def test_bench_view_times_the_server_as_the_add_on_uses_it(trained_run, tmp_path):
-    """``bench-view``: the real server orbited at a quarter of the size, then the whole frame."""
+def _processes_with(text: bytes) -> list[str]:
+    found = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            if text in cmdline.read_bytes():
+                found.append(cmdline.parent.name)
+        except OSError:  # it ended meanwhile
+            continue
+    return found
+
+
+@pytest.mark.parametrize("beside", (False, True), ids=("alone", "beside-training"))
+def test_bench_view_times_the_server_as_the_add_on_uses_it(trained_run, tmp_path, beside):
+    """``bench-view``: the real server orbited at a quarter of the size, then the whole frame;
+    with ``--beside-training``, while a real training runs (and is gone afterwards)."""
     result = run_python("-m", "nerf_backend", "bench-view", str(trained_run), "--size", "32", "--frames", "3",
-                        "--device", "cpu", "--out", str(tmp_path / "bench"))
+                        "--device", "cpu", "--out", str(tmp_path / "bench"), *(["--beside-training"] if beside else []))
     report = json.loads((tmp_path / "bench" / "view_speed.json").read_text())
+    assert report["training_beside_threads"] == (max(1, os.cpu_count() - 1) if beside else None)
+    if beside:
+        assert "training beside it on" in result.stdout
+        assert not _processes_with(b"training_beside"), "the training beside was left running"
     assert report["region"] == [32, 32] and report["orbit_size"] == [8, 8] and report["orbit"]["frames"] == 3
     assert 0 < report["orbit"]["render_median_seconds"] <= report["orbit"]["median_seconds"]
     assert 0 < report["full_frame"]["render_seconds"] <= report["full_frame"]["seconds"]

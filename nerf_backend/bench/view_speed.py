@@ -3,6 +3,9 @@
 the frame's size (the add-on's frames while the view moves; each request sent when the frame
 before it is read), then rests and asks for the whole frame.
 
+With ``beside_training``, a real ``train`` runs on the run's dataset the whole time, on all
+cores but one as the add-on starts it: the live view of one run while another trains.
+
 Reported: the server's start (spawned to ready: torch's import, the model's load and its
 renderer's caches), each orbit frame from request to pixels copied out of the frame file
 (what a frame costs the add-on's timer, upload and drawing apart) and the frames a second that
@@ -11,7 +14,9 @@ makes, and the full frame's time after the rest.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
 import statistics
 import subprocess
 import sys
@@ -22,6 +27,8 @@ from pathlib import Path
 import torch
 
 from nerf_contract import commands, view_frames
+from nerf_contract.run_layout import EVENTS_NAME
+from nerf_contract.training_events import read_events
 
 from ..configs.train_config import TrainConfig
 from ..core.devices import machine_record, machine_words
@@ -103,8 +110,31 @@ class _Server:
         self.process.wait(timeout=60)
 
 
+@contextlib.contextmanager
+def training_beside(dataset: str, folder: Path, device: str):
+    """A real ``train`` on ``dataset`` (``auto``, all cores but one: the add-on's choice) from
+    its first step until the block ends; yields its thread count."""
+    threads = max(1, (os.cpu_count() or 2) - 1)
+    run = folder / "training_beside"
+    argv = commands.train_argv(dataset, str(run), device=device, preset="auto", max_seconds=24 * 3600,
+                               cpu_threads=threads)
+    with open(folder / "train.log", "w") as log:
+        process = subprocess.Popen(commands.backend_command(sys.executable, argv), stdout=subprocess.DEVNULL, stderr=log)
+    try:
+        deadline = time.monotonic() + 600
+        while not (run / EVENTS_NAME).is_file() or not read_events(run / EVENTS_NAME):
+            if process.poll() is not None or time.monotonic() > deadline:
+                said = (folder / "train.log").read_text().strip().splitlines()[-1:] or ["no output"]
+                raise NerfError(f"bench-view: the training beside did not start: {said[0]}")
+            time.sleep(0.5)
+        yield threads
+    finally:
+        process.kill()
+        process.wait()
+
+
 def view_speed(run: Path, out_dir: Path, size: int | None = None, fraction: float = 0.25, frames: int = 30,
-               device: str = "cpu") -> dict:
+               device: str = "cpu", beside_training: bool = False) -> dict:
     """Times the live view of ``run`` (see the module's text); writes ``view_speed.json`` and
     ``view_speed.md`` into ``out_dir``."""
     stored = RunFolder(run).read_config()
@@ -119,7 +149,9 @@ def view_speed(run: Path, out_dir: Path, size: int | None = None, fraction: floa
     fl_x, fl_y = intrinsics.fl_x * width / intrinsics.width, intrinsics.fl_y * height / intrinsics.height
     small = (max(1, round(width * fraction)), max(1, round(height * fraction)))
     out_dir.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix="nerf_view_") as folder:
+    with tempfile.TemporaryDirectory(prefix="nerf_view_") as folder, contextlib.ExitStack() as beside:
+        training_threads = beside.enter_context(training_beside(stored["dataset"], Path(folder), device)) \
+            if beside_training else None
         server = _Server(run, Path(folder), device)
         orbit = []
         for index in range(frames + 1):  # the first is a warm-up, untimed
@@ -137,7 +169,7 @@ def view_speed(run: Path, out_dir: Path, size: int | None = None, fraction: floa
     report = {
         "run": str(Path(run).resolve()), "device": device, "machine": machine_record(torch.device(device)),
         "iteration": server.ready.get("iteration"), "region": [width, height], "orbit_size": list(small),
-        "start_seconds": server.start_seconds,
+        "start_seconds": server.start_seconds, "training_beside_threads": training_threads,
         "orbit": {"frames": frames, "median_seconds": statistics.median(seconds), "slowest_seconds": max(seconds),
                   "frames_per_second": 1.0 / statistics.median(seconds),
                   "render_median_seconds": statistics.median(render for _, render in orbit)},
@@ -154,7 +186,9 @@ def view_speed_markdown(report: dict) -> str:
     return "\n".join([
         f"# bench-view: {report['run']} (iteration {report['iteration']})", "",
         f"{report['device']}, {machine_words(report['machine'])}; region {width}×{height}, orbit frames "
-        f"{report['orbit_size'][0]}×{report['orbit_size'][1]}.", "",
+        f"{report['orbit_size'][0]}×{report['orbit_size'][1]}"
+        + (f"; training beside it on {report['training_beside_threads']} thread(s)."
+           if report.get("training_beside_threads") else "."), "",
         "| what | seconds | |", "| --- | ---: | --- |",
         f"| server start (spawn to ready) | {report['start_seconds']:.2f} | |",
         f"| orbit frame, request to pixels (median of {orbit['frames']}) | {orbit['median_seconds']:.3f} | "

@@ -25,6 +25,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fraction", type=positive_float, default=0.25,
                         help="the orbit frames' size as a fraction of the region's side (the add-on's while moving)")
     parser.add_argument("--frames", type=positive_int, default=30, help="timed orbit frames")
+    parser.add_argument("--beside-training", action="store_true",
+                        help="time it while a real training runs on the run's dataset (all cores but one, as the "
+                             "add-on trains)")
     add_device(parser)
     parser.add_argument(BackendFlag.OUT, type=Path, required=True, help="folder for the timings (JSON and Markdown)")
 
@@ -33,6 +36,6 @@ def run(args: argparse.Namespace) -> int:
     if args.fraction > 1:
         raise NerfError("bench-view --fraction: at most 1 (the whole region)")
     view_speed(args.run, args.out, size=args.size, fraction=args.fraction, frames=args.frames,
-               device=str(resolve_device(args.device)))
+               device=str(resolve_device(args.device)), beside_training=args.beside_training)
     print((args.out / "view_speed.md").read_text(), end="")
     return 0
