@@ -3,6 +3,8 @@
 ``cli.py`` builds the command line from ``COMMANDS``, in this order, and runs the one chosen.
 The flags the add-on passes are named in ``nerf_contract.commands``."""
 
-from . import bench, bench_step, bench_view, compare, evaluate, export, hold_out, mesh, render, report, serve, train
+from . import (bench, bench_kilonerf, bench_step, bench_view, compare, evaluate, export, hold_out, mesh, render, report,
+               serve, train)
 
-COMMANDS = (train, bench, bench_step, bench_view, render, evaluate, compare, mesh, export, report, serve, hold_out)
+COMMANDS = (train, bench, bench_step, bench_view, bench_kilonerf, render, evaluate, compare, mesh, export, report, serve,
+            hold_out)
