@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from ..core.devices import machine_record, machine_words
+from ..core.devices import colour_network_dtype, machine_record, machine_words
 from ..core.errors import NerfError
 from ..core.files import write_json
 from ..data.dataset import load_split
@@ -39,22 +39,24 @@ from ..models.marched import MarchedModel
 BATCH = 16384  # distillation samples a step
 
 
-class KiloModel(nn.Module):
-    """The student marched as the teacher is (its occupancy grid and step): a model
-    ``render_image`` can render."""
+class MarchedFunctions(nn.Module):
+    """A density function and a colour function marched as ``teacher`` marches (its occupancy
+    grid and step, PyTorch's march with early termination): a model ``render_image`` renders.
+    The student is rendered this way, and the teacher too, for a comparison of the fields alone
+    (the product's renderer runs the teacher through its compiled march)."""
 
-    def __init__(self, student: KiloNerf, teacher) -> None:
+    def __init__(self, owner: nn.Module, density_fn, ray_colour, teacher) -> None:
         super().__init__()
-        self.student, self.occupancy = student, teacher.render_occupancy()
+        self.owner = owner  # the module the functions belong to: its parameters say the device
+        self.density_fn, self.ray_colour, self.occupancy = density_fn, ray_colour, teacher.render_occupancy()
         self.step, self.steps = teacher.step, teacher.samples_per_ray
         self.render_chunk = teacher.TORCH_RENDER_CHUNK
 
     def forward(self, origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor,
                 background: Tensor | float = 1.0) -> list[RenderOutput]:
         return [render_marched_stopping_early(
-            origins, directions, t_near, t_far, density_fn=self.student.density_fn,
-            ray_colour=self.student.ray_colour(directions), occupancy=self.occupancy, step=self.step,
-            steps=self.steps, background=background)]
+            origins, directions, t_near, t_far, density_fn=self.density_fn, ray_colour=self.ray_colour(directions),
+            occupancy=self.occupancy, step=self.step, steps=self.steps, background=background)]
 
 
 def distil(teacher, cells: tuple[int, int, int], seconds: float, seed: int = 0,
@@ -118,13 +120,20 @@ def kilonerf_trade(run: Path, out_dir: Path, seconds: float, cells: tuple[int, i
     test = load_split(folder.read_config()["dataset"], "test").subset(views)
     quarter = test.intrinsics.scaled(0.25)
     rows = {}
-    for name, model in (("product renderer (the run's model)", teacher), ("KiloNeRF", KiloModel(student, teacher))):
+    device_type = torch.device(device)
+    contenders = (
+        ("the run's model, the product's renderer", teacher, teacher),
+        ("the run's model, PyTorch's march", MarchedFunctions(
+            teacher, teacher._frozen_density, lambda d: teacher.field.ray_colour(d, colour_network_dtype(device_type)), teacher),
+         teacher),
+        ("KiloNeRF", MarchedFunctions(student, student.density_fn, student.ray_colour, teacher), student))
+    for name, model, owner in contenders:
         scores = [psnr(render_image(model, test.intrinsics, test.poses[i], ray_bounds).rgb, test.rgb_on_white(i).numpy())
                   for i in range(len(test))]
         rows[name] = {"psnr": float(np.mean(scores)),
                       "full_seconds": _frame_seconds(model, test.intrinsics, test.poses[0], ray_bounds, 2),
                       "quarter_seconds": _frame_seconds(model, quarter, test.poses[0], ray_bounds, 5),
-                      "bytes": _bytes(teacher if model is teacher else student)}
+                      "bytes": _bytes(owner)}
     report = {"run": str(Path(run).resolve()), "iteration": state["iteration"], "device": device,
               "machine": machine_record(torch.device(device)), "cells": list(cells), "views": len(test),
               "size": [test.intrinsics.width, test.intrinsics.height], "distillation": distillation,
