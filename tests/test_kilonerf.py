@@ -55,3 +55,10 @@ def test_bench_kilonerf_refuses_a_model_it_cannot_march(trained_run, tmp_path):
     result = run_python("-m", "nerf_backend", "bench-kilonerf", str(trained_run), "--seconds", "1", "--out",
                         str(tmp_path / "kilo"), check=False)
     assert result.returncode != 0 and "bench-kilonerf distils a marched model" in result.stderr, result.stderr
+
+
+def test_no_samples_give_no_rows():
+    """A chunk whose rays all miss the occupied cells asks for nothing (it happened rendering lego)."""
+    layer = CellLinear(3, 5, 4)
+    packing = pack_by_cell(torch.zeros(0, dtype=torch.long), 3)
+    assert packing.unpack(layer(packing.pack(torch.zeros(0, 5)), packing)).shape == (0, 4)

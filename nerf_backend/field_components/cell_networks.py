@@ -42,7 +42,7 @@ class CellPacking:
 
     def unpack(self, blocked: Tensor) -> Tensor:
         """``[K, BLOCK, C]`` → ``[P, C]`` in the samples' own order."""
-        return blocked.reshape(self.rows, -1).index_select(0, self.slot)
+        return blocked.reshape(self.rows, blocked.shape[-1]).index_select(0, self.slot)
 
 
 def pack_by_cell(cell: Tensor, cells: int) -> CellPacking:
