@@ -20,6 +20,7 @@ import shutil
 import subprocess
 import tempfile
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -150,6 +151,26 @@ class LiveViewClient:
         except OSError:
             return None  # it died meanwhile: state() says why
         return self._next_id
+
+    def render(self, view_matrix, projection_matrix, width: int, height: int, nerf_to_world=None,
+               timeout: float = 600.0) -> LiveFrame:
+        """One frame, waited for: what F12 asks (the render waits for the NeRF as for the rest of
+        the scene). RuntimeError with the reason where the server refused it, stopped or took
+        longer than ``timeout`` seconds."""
+        request_id = self.request(view_matrix, projection_matrix, width, height, nerf_to_world=nerf_to_world)
+        if request_id is None:
+            raise RuntimeError(f"the render server is not running ({self.state()})")
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if request_id in self.take_failed():
+                raise RuntimeError(self.last_error)
+            frame = self.poll_frame()
+            if frame is not None and frame.request_id == request_id:
+                return frame
+            if not self.running():
+                raise RuntimeError(f"the render server {self.state()}")
+            time.sleep(0.005)
+        raise RuntimeError(f"the render server sent no frame within {timeout:.0f} s")
 
     def take_failed(self) -> list[int]:
         """The request ids the server refused since the last call (each with ``last_error``)."""

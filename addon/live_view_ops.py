@@ -1,6 +1,7 @@
 """Live View: the run's NeRF drawn in every 3D View beside the scene (``viewport_overlay``),
 rendered by the backend's ``serve`` in a process of its own, on a finished run or on one still
-training (the server loads each new checkpoint)."""
+training (the server loads each new checkpoint). NeRF in Renders: the same server's frames
+composited into F12 renders by depth (``render_composite``)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import bpy
 
 from nerf_contract.run_layout import CHECKPOINT_NAME
 
-from . import viewport_overlay
+from . import render_composite, viewport_overlay
 from .paths import backend_python, run_dir, settings
 
 
@@ -35,4 +36,41 @@ class NERF_OT_live_view(bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = (NERF_OT_live_view,)
+def _cannot_serve(context) -> str:
+    """Why the run cannot be served yet ("" where it can)."""
+    run = run_dir(context)
+    if not backend_python(context):
+        return "no backend Python: press Set Up Backend, or choose one in the preferences"
+    if not (run / CHECKPOINT_NAME).is_file():
+        return f"{run}: no checkpoint yet: train first"
+    return ""
+
+
+class NERF_OT_render_composite(bpy.types.Operator):
+    """Composite the run's NeRF into F12 renders and animations by depth, over Cycles' or EEVEE's
+    render of the scene from the same camera (adds its nodes to the scene's compositor; press
+    again to remove them)"""
+
+    bl_idname = "nerf.render_composite"
+    bl_label = "NeRF in Renders"
+
+    def execute(self, context):
+        s = settings(context)
+        if s.render_composite:
+            render_composite.tear_down(context.scene)
+            s.render_composite = False
+            return {"FINISHED"}
+        reason = _cannot_serve(context)
+        if reason:
+            self.report({"ERROR"}, reason)
+            return {"CANCELLED"}
+        try:
+            render_composite.set_up(context.scene)
+        except RuntimeError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        s.render_composite = True
+        return {"FINISHED"}
+
+
+CLASSES = (NERF_OT_live_view, NERF_OT_render_composite)

@@ -13,7 +13,7 @@ import time
 
 import bpy
 
-from . import viewport_overlay
+from . import render_composite, viewport_overlay
 from .images import COMPARISON_IMAGE, PREVIEW_IMAGE
 from .job_timer import status
 from .paths import animation_dir, asset_dir, backend_python, dataset_dir, run_dir, torch_build
@@ -225,6 +225,26 @@ class NERF_PT_results_live_view(_NerfPanel, bpy.types.Panel):
             _text(box, context, f"Live view {state}", icon="ERROR")
 
 
+class NERF_PT_results_render(_NerfPanel, bpy.types.Panel):
+    """The NeRF composited into F12 renders and animations by depth."""
+
+    bl_label = "NeRF in Renders"
+    bl_parent_id = "NERF_PT_results"
+
+    def draw(self, context):
+        s, layout = context.scene.nerf, _split(self.layout)
+        on = s.render_composite
+        layout.operator("nerf.render_composite", text="NeRF in Renders", icon="RENDER_STILL", depress=on)
+        message = render_composite.last_message
+        if message:
+            box = layout.box()
+            box.alert = message.startswith("no NeRF")
+            _text(box, context, message, icon="ERROR" if box.alert else "CHECKMARK")
+        elif on:
+            _text(layout, context, "F12 renders the NeRF from the scene's camera, by depth with the scene",
+                  icon="INFO")
+
+
 def _live_view_rate() -> str:
     """'7.4 frames/s, 0.13 s each, iteration 3000': the last two seconds' frames."""
     stats, now = viewport_overlay.stats, time.monotonic()
@@ -237,7 +257,8 @@ def _live_view_rate() -> str:
 
 
 CLASSES = (NERF_PT_dataset, NERF_PT_dataset_rendering, NERF_PT_training, NERF_PT_training_preview,
-           NERF_PT_results, NERF_PT_results_comparison, NERF_PT_results_animation, NERF_PT_results_live_view)
+           NERF_PT_results, NERF_PT_results_comparison, NERF_PT_results_animation, NERF_PT_results_live_view,
+           NERF_PT_results_render)
 
 
 def register() -> None:

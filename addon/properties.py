@@ -1,5 +1,8 @@
 """The add-on's settings: per-scene (saved in the .blend, so reopening it finds the dataset
-and the run again) and per-user preferences (the backend's Python)."""
+and the run again) and per-user preferences (the backend's Python).
+
+No property has an update callback: with one, the bpy module of Blender 4.2 crashed on exit
+after the add-on was disabled (a setting that must act is an operator, as NeRF in Renders is)."""
 
 from __future__ import annotations
 
@@ -71,6 +74,10 @@ class NerfSettings(bpy.types.PropertyGroup):
         name="Move With", type=bpy.types.Object, poll=lambda _settings, obj: obj.type == "EMPTY",
         description="An Empty whose transform moves the NeRF in the live view (none: the NeRF sits where the "
                     "dataset's scene was, over its objects)")
+    render_composite: BoolProperty(
+        name="NeRF in Renders", default=False,
+        description="Whether F12 renders and animations have the run's NeRF composited in by depth (set by the "
+                    "NeRF in Renders button, which adds or removes its compositor nodes)")
     # Results of the last comparison (shown in the panel).
     # The last comparison's metrics as the backend lists them (compare.json's "metrics" table):
     # JSON rows {"key", "label", "value", "text"}; "" before any comparison.

@@ -24,7 +24,8 @@ from conftest import REPO_ROOT, SHARED_DIR, run_python
 from nerf_backend.metrics.image_metrics import psnr
 
 PANELS = {"NERF_PT_dataset", "NERF_PT_dataset_rendering", "NERF_PT_training", "NERF_PT_training_preview",
-          "NERF_PT_results", "NERF_PT_results_comparison", "NERF_PT_results_animation", "NERF_PT_results_live_view"}
+          "NERF_PT_results", "NERF_PT_results_comparison", "NERF_PT_results_animation", "NERF_PT_results_live_view",
+          "NERF_PT_results_render"}
 # Every operator is run in the session except Set Up Backend, which would pip-install the
 # shipped requirements (a GPU build of torch; its work is tested through BackendSetup), the
 # animation's Cancel, whose job is cancelled and resumed in test_addon_jobs, and Live View,
@@ -32,7 +33,7 @@ PANELS = {"NERF_PT_dataset", "NERF_PT_dataset_rendering", "NERF_PT_training", "N
 OPERATORS = {"NERF_OT_generate_dataset", "NERF_OT_train", "NERF_OT_cancel_training", "NERF_OT_render_test_views",
              "NERF_OT_render_active_camera", "NERF_OT_compare", "NERF_OT_open_report", "NERF_OT_setup_backend",
              "NERF_OT_render_animation", "NERF_OT_cancel_animation", "NERF_OT_import_mesh", "NERF_OT_import_asset",
-             "NERF_OT_cancel_asset", "NERF_OT_live_view"}
+             "NERF_OT_cancel_asset", "NERF_OT_live_view", "NERF_OT_render_composite"}
 # Measured: the fast preset, 300 iterations on a 32×32 dataset of A.blend (24 training views),
 # rendering test pose 1 from the active camera scored 30.47 dB (SSIM 0.978) against Cycles.
 # The floor leaves room for run-to-run variation.
@@ -222,6 +223,65 @@ def test_camera_animation_renders_as_a_job_and_loads_as_a_video_and_a_strip(sess
     shown = final["shown"]
     assert shown["source"] == "MOVIE" and shown["frames"] == 3 and shown["video"].endswith("side_by_side.mp4")
     assert shown["strip"]["frames"] == 3 and shown["strip"]["frame_start"] == 1
+
+
+def _eroded(mask: np.ndarray) -> np.ndarray:
+    """``mask`` less its border: a pixel stays where its eight neighbours are in it too."""
+    padded = np.pad(mask, 1)
+    height, width = mask.shape
+    return np.logical_and.reduce([padded[1 + dy:1 + dy + height, 1 + dx:1 + dx + width]
+                                  for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
+
+
+def _composite_scores(folder: Path, name: str, frame: int) -> dict:
+    """One F12 image with the NeRF composited, scored by region: the NeRF's pixels (where its
+    own ``render`` of that camera is opaque and the red cube is not over it) against that
+    render, the scene's against Cycles alone, and how many pixels test the depth order each
+    way."""
+    from nerf_backend.core.files import read_exr
+
+    composite, alone = _on_white(folder / f"{name}.png"), iio.imread(folder / f"alone_{frame:04d}.png") / 255.0
+    nerf = iio.imread(folder / "nerf" / f"{frame:04d}.png")[..., :3] / 255.0
+    opacity = read_exr(folder / "nerf" / f"{frame:04d}_depth.exr")["A"]
+    cube_anywhere = alone[..., 0] * alone[..., 3] > 0.02
+    cube_whole = (alone[..., 0] > 0.9) & (alone[..., 3] > 0.99)
+    plane = (alone[..., 1] > 0.9) & (alone[..., 3] > 0.99)
+    # The scene's pixels: flat colour inside the cube or the plane, a pixel from their edges
+    # (EEVEE's filter is wider than Cycles'), the NeRF empty there or the cube wholly over it.
+    flat = _eroded(cube_whole | plane)
+    nerf_pixels, scene_pixels = (opacity > 0.99) & ~cube_anywhere, flat & ((opacity < 0.01) | cube_whole)
+    return {"nerf_db": psnr(composite[nerf_pixels], nerf[nerf_pixels]),
+            "scene_db": psnr(composite[scene_pixels], _on_white(folder / f"alone_{frame:04d}.png")[scene_pixels]),
+            "cube_over_nerf": int((cube_whole & (opacity > 0.5)).sum()),
+            "nerf_over_plane": int((plane & (opacity > 0.99)).sum()),
+            "neither": int((~nerf_pixels & ~scene_pixels).sum())}
+
+
+def test_f12_composites_the_nerf_by_depth_in_a_frame_and_an_animation(session):
+    """NeRF in Renders on: F12 of frame 2 (Cycles and EEVEE) and an animation of frames 1-3 (the
+    camera moves), each scored by region (``_composite_scores``)."""
+    composite = session["render_composite"]
+    folder = Path(composite["folder"])
+    keys = ("turn_on", "alone", "animation", "still", "eevee", "turn_off")
+    assert [composite[key] for key in keys] == [["FINISHED"]] * 6 and not composite["on_after"], composite
+    # Its nodes are added to the compositor, and removed when it is turned off.
+    nerf_nodes = {"NeRF Z Combine", "NeRF Colour", "NeRF Depth", "NeRF Depth Channel"}
+    assert nerf_nodes <= set(composite["nodes_on"]) and not nerf_nodes & set(composite["nodes_after"]), composite
+    assert composite["message"].startswith("frame 2: the NeRF rendered in"), composite["message"]
+    assert composite["server_after"] == "off"  # the render's server stopped with the render
+    scores = {name: _composite_scores(folder, name, frame) for name, frame in
+              (("f12_0001", 1), ("f12_0002", 2), ("f12_0003", 3), ("still", 2), ("eevee", 2))}
+    print("NeRF in Renders: " + "; ".join(f"{name}: NeRF {s['nerf_db']:.1f} dB, scene {s['scene_db']:.1f} dB, "
+                                          f"{s['neither']} edge pixels" for name, s in scores.items()))
+    # Measured on Blender 5.0.1 (64×48, the session's 300-step fast model): the NeRF's pixels
+    # 46.6-47.0 dB against its own render (8-bit rounding twice), the scene's 70.1-71.5 dB
+    # against Cycles alone (EEVEE's too); each frame of the animation has its own camera's
+    # NeRF (with the camera as render_pre saw it, frames 1 and 3 scored 28-31 dB).
+    for name, s in scores.items():
+        assert s["nerf_db"] > 40.0 and s["scene_db"] > 45.0, (name, s)
+        # The depth order is tested both ways: the cube hides the NeRF, the NeRF the plane.
+        # Measured: 84-90 pixels of the cube over the NeRF, 160-166 of the NeRF over the plane.
+        assert s["cube_over_nerf"] >= 40 and s["nerf_over_plane"] >= 80, (name, s)
 
 
 def test_the_nerf_mesh_lands_on_the_original_objects(session):

@@ -313,25 +313,22 @@ def test_the_add_ons_client_draws_newest_first_and_says_when_the_server_was_kill
     client.start(sys.executable, REPO_ROOT, trained_run, device="cpu")
     folder = client._folder
 
-    def frame_for(width, height):
-        request_id = client.request(view, perspective(intrinsics, width, height), width, height)
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            frame = client.poll_frame()
-            if frame is not None and frame.request_id == request_id:
-                return frame
-            time.sleep(0.01)
-        raise AssertionError(f"no frame; state {client.state()}")
+    def frame_for(width, height):  # F12's way: one frame, waited for
+        return client.render(view, perspective(intrinsics, width, height), width, height, timeout=120)
 
     frame = frame_for(24, 16)
     assert (frame.width, frame.height, len(frame.rgba), len(frame.depth)) == (24, 16, 24 * 16 * 16, 24 * 16 * 4)
     assert client.state() == "ready"
     assert client.poll_frame() is None, "a frame is handed out once"
+    with pytest.raises(RuntimeError, match="view_matrix must be a 4×4 matrix of finite numbers"):
+        client.render([[1.0, 0.0], [0.0, 1.0]], perspective(intrinsics, 8, 8), 8, 8, timeout=120)
     server = client._process
     os.kill(server.pid, signal.SIGKILL)
     server.wait()
     assert client.state().startswith("stopped: ") and "killed" in client.state()
     assert client.request(view, perspective(intrinsics, 8, 8), 8, 8) is None and client.poll_frame() is None
+    with pytest.raises(RuntimeError, match=r"not running \(stopped: the server was killed \(signal 9\)\)"):
+        frame_for(8, 8)
     client.start(sys.executable, REPO_ROOT, trained_run, device="cpu")  # the panel's click restarts it
     assert not folder.exists(), "the killed server's folder is removed at the restart"
     assert frame_for(8, 8).width == 8
@@ -381,3 +378,23 @@ def test_the_scheduler_serves_moving_views_first_then_every_view_in_turn():
     scheduler.sent(12, request, now)
     scheduler.keep_only({"a", "c"})  # b's area closed meanwhile
     assert scheduler.delivered(frame(12, request)) is None and set(scheduler.regions) == {"a", "c"}
+
+
+def test_a_frame_goes_to_the_compositor_linear_premultiplied_with_empty_far_away():
+    """addon/composite_pixels.py (F12's images): the frame's sRGB colour decoded to linear (the
+    IEC 61966-2-1 curve: 0.5 → 0.21404, 0.04045 → 0.0031308) under its alpha, and depth where
+    the NeRF is empty (infinite, or no opacity) far behind any render's background."""
+    from addon.composite_pixels import EMPTY_DEPTH, compositor_pixels
+    from addon.live_view import LiveFrame
+
+    straight = np.array([[0.5, 1.0, 0.04045], [0.5, 0.0, 1.0], [0.2, 0.2, 0.2], [0.7, 0.7, 0.7]])
+    alpha = np.array([1.0, 0.5, 0.0, 0.25])
+    rgba = np.concatenate([straight * alpha[:, None], alpha[:, None]], axis=1).astype(np.float32)
+    depth = np.array([3.0, 4.0, 5.0, np.inf], np.float32)
+    colour, z = compositor_pixels(LiveFrame(7, 2, 2, rgba.tobytes(), depth.tobytes(), 0.1, 0))
+    colour, z = colour.reshape(4, 4), z.reshape(4, 4)
+    np.testing.assert_allclose(colour[0], [0.21404, 1.0, 0.0031308, 1.0], atol=2e-5)
+    np.testing.assert_allclose(colour[1], [0.5 * 0.21404, 0.0, 0.5, 0.5], atol=2e-5)  # premultiplied again
+    np.testing.assert_array_equal(colour[2], [0.0, 0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(z[:, 0], np.float32([3.0, 4.0, EMPTY_DEPTH, EMPTY_DEPTH]))
+    assert (z[:, 0] == z[:, 1]).all() and (z[:, 3] == 1.0).all() and colour.dtype == z.dtype == np.float32

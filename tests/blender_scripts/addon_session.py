@@ -11,8 +11,8 @@ recorded in REPORT.json:
 3. train the fast preset through the Train operator (a real backend subprocess), polling the
    add-on's own job code as its timer would, until done;
 4. render the test views (loaded as images) and compare the active camera with Cycles; the
-   camera's animation, the NeRF mesh, and the baked asset (a job, imported, F12 in Cycles and
-   EEVEE);
+   camera's animation; NeRF in Renders (F12 with the NeRF composited by depth); the NeRF mesh,
+   and the baked asset (a job, imported, F12 in Cycles and EEVEE);
 5. disable and remove the extension; list what is left.
 """
 
@@ -184,6 +184,15 @@ report["animation"] = {"result": sorted(bpy.ops.nerf.render_animation()), "state
 state = follow(str(paths.animation_dir(bpy.context)), report["animation"]["states"])
 report["animation"]["final"] = {"state": state.state, "detail": state.detail, "error": state.error,
                                 "warning": state.warning, "shown": state.extra.get("shown")}
+save()
+
+# NeRF in Renders: F12 of a frame and of the camera's animation with the NeRF composited by
+# depth (render_composite_check.py says how; tests/test_addon.py scores the images).
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import render_composite_check  # noqa: E402
+
+report["render_composite"] = render_composite_check.run(
+    bpy.context, module, WORK, [obj for obj in scene.objects if obj.type == "MESH" and obj.visible_get()])
 save()
 
 # The NeRF's surface as a mesh over the original: its bounds, and where rays from outside hit it.

@@ -31,6 +31,7 @@ from mathutils import Matrix, Quaternion, Vector
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import gui_session as gui  # noqa: E402  (the same driver as the add-on's GUI session)
+from render_composite_check import flat_material  # noqa: E402
 
 RUN = Path(sys.argv[sys.argv.index("--") + 3])
 gui.REPORT = gui.WORK / "live_view_report.json"
@@ -74,19 +75,6 @@ def scene_box() -> tuple[Vector, float]:
     low = Vector(tuple(min(c[i] for c in corners) for i in range(3)))
     high = Vector(tuple(max(c[i] for c in corners) for i in range(3)))
     return (low + high) / 2, (high - low).length / 2
-
-
-def flat_material(name: str, colour) -> bpy.types.Material:
-    """Emission only: the same colour in Solid (object colour, flat light) and Rendered shading."""
-    material = bpy.data.materials.new(name)
-    material.use_nodes = True
-    nodes = material.node_tree.nodes
-    nodes.clear()
-    emission, output = nodes.new("ShaderNodeEmission"), nodes.new("ShaderNodeOutputMaterial")
-    emission.inputs["Color"].default_value = (*colour, 1.0)
-    material.node_tree.links.new(emission.outputs[0], output.inputs["Surface"])
-    material.diffuse_color = (*colour, 1.0)
-    return material
 
 
 def set_the_stage() -> dict:
