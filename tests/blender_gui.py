@@ -212,7 +212,8 @@ def run_session(chroot: Path, work: Path, script: Path, *arguments: str, blend: 
     (work / "home").mkdir(exist_ok=True)
     run_python(str(REPO_ROOT / "tools" / "build_extension.py"), "--out", str(work))
     extension = next(work.glob("nerf_from_blender-*.zip"))
-    for helper in script.parent.glob("*_session.py"):  # a session imports the driver of another
+    # A session imports the driver of another, and the checks the headless session shares.
+    for helper in [*script.parent.glob("*_session.py"), *script.parent.glob("*_check.py")]:
         shutil.copy(helper, work)
     backend = work / "backend-python"
     backend.write_text(f'#!/bin/sh\nexec /usr/sbin/chroot /host /usr/bin/env -C "$PWD" "{sys.executable}" "$@"\n')

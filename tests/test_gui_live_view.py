@@ -4,8 +4,8 @@ Cycles at 64×64) drawn over the 3D View by the add-on's overlay, checked pixel 
 the frame the server sent: the NeRF's colour where the NeRF is, a red cube in front of it where
 the cube stands, a green plane behind it only where the NeRF is not; in Solid and in Rendered
 shading (EEVEE, Cycles). The session (tests/blender_scripts/live_view_session.py) orbits the view
-through Blender's events, kills the server, disables the add-on, reloads the file and quits,
-and this test looks for what each left behind.
+through Blender's events, presses F12 without and with NeRF in Renders, kills the server,
+disables the add-on, reloads the file and quits, and this test looks for what each left behind.
 
 Run by ``make test-gui``; screenshots in ``out/gui-screenshots/SUITE-live-view/``."""
 
@@ -15,6 +15,7 @@ import json
 import shutil
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
 import pytest
 
@@ -50,7 +51,7 @@ def live(request, a_blend_run, shared_scenes, tmp_path_factory):
                                       str(work / "run"), blend=work / "A.blend", timeout=1200)
     report_path = work / "live_view_report.json"
     report = json.loads(report_path.read_text()) if report_path.is_file() else {}
-    keep_artifacts(ARTIFACTS / f"{suite}-live-view", work, console, report_path.name, ("live_*.png", "zz_*.png"))
+    keep_artifacts(ARTIFACTS / f"{suite}-live-view", work, console, report_path.name, ("live_*.png", "f12_*.png", "zz_*.png"))
     return {"report": report, "console": console, "work": work}
 
 
@@ -113,6 +114,29 @@ def test_orbiting_draws_quarter_frames_then_the_whole_region(live):
           f"{orbit['render_seconds_median'] * 1e3:.0f} ms, upload {orbit['upload_seconds_median'] * 1e3:.1f} ms, "
           f"draw {orbit['draw_seconds_median'] * 1e3:.2f} ms (medians); the whole region's upload "
           f"{orbit['full_upload_seconds'] * 1e3:.1f} ms")
+
+
+def test_f12_in_the_gui_composites_the_nerf_behind_the_cube(live):
+    """F12 pressed twice from the viewport's view (Cycles, 120×80): without the NeRF, then with
+    NeRF in Renders on. Where the red cube stands both renders agree (it hides the NeRF); the
+    NeRF changes many pixels elsewhere; the render's server stopped with the render."""
+    f12 = live["report"]["live"]["f12"]
+    assert f12["turned_on"] == ["FINISHED"] and f12["message"].startswith("frame "), f12
+    assert f12["server"] == "off", f12
+    shots = live["work"] / "screenshots"
+    alone, nerf = (iio.imread(shots / f"{name}.png").astype(np.float64) / 255 for name in ("f12_alone", "f12_nerf"))
+    width, height = f12["size"]
+    x0, y0, x1, y1 = f12["cube"]  # camera-view coordinates, 0-1 from the bottom left
+    ys, xs = np.mgrid[0:height, 0:width]
+    u, v = (xs + 0.5) / width, 1 - (ys + 0.5) / height
+    inside = (u > x0 + 0.2 * (x1 - x0)) & (u < x1 - 0.2 * (x1 - x0)) & (v > y0 + 0.2 * (y1 - y0)) & (v < y1 - 0.2 * (y1 - y0))
+    assert inside.sum() > 20, f12
+    cube = alone[inside]
+    assert (cube[:, 0] > 0.9).all() and (cube[:, 1] < 0.1).all(), "the cube is red in the render without the NeRF"
+    np.testing.assert_allclose(nerf[inside], alone[inside], atol=2 / 255)
+    changed = np.abs(nerf - alone)[..., :3].max(axis=-1) > 0.1
+    print(f"F12 in the GUI: {int(changed.sum())} of {width * height} pixels show the NeRF; {f12['message']}")
+    assert changed.sum() > 200 and not (changed & inside).any()
 
 
 def test_a_killed_server_is_said_in_the_panel_draws_nothing_stale_and_restarts(live):

@@ -1,7 +1,8 @@
 """The live view in the real Blender program, GUI drawn (Xvfb): a trained run of a real scene
 nobody here made (A.blend: a cube, Suzanne and a torus) drawn over Blender's 3D View, with a mesh
 in front of the NeRF and one behind it, in Solid and in Rendered shading (EEVEE and Cycles);
-the view orbited through Blender's own events (numpad keys); the server killed, the add-on
+the view orbited through Blender's own events (numpad keys); F12 with NeRF in Renders on (the
+render as Blender's job, its handlers off the main thread); the server killed, the add-on
 disabled and the file reloaded, each checked for what is left.
 
 Run by tests/test_gui_live_view.py inside the Blender GUI chroot as::
@@ -265,6 +266,59 @@ def faults():
     report["live"]["at_quit"] = server_leftovers()
 
 
+_renders_done = []
+
+
+@bpy.app.handlers.persistent
+def _render_done(*_args) -> None:
+    _renders_done.append(time.monotonic())
+
+
+def f12(name: str, timeout: float = 300):
+    """F12 pressed, as a user does: Blender renders as a job, its handlers (the add-on's too)
+    off the main thread; the Render Result saved as ``NAME.png`` when it completes."""
+    done = len(_renders_done)
+    yield from gui.key("F12")
+    yield from gui.wait(lambda: len(_renders_done) > done, timeout, f"F12's render ({name})")
+    yield 0.5
+    bpy.data.images["Render Result"].save_render(str(gui.SHOTS / f"{name}.png"))
+    gui.close_extra_windows()  # the render's own window
+    yield 0.5
+
+
+def f12_with_the_nerf():
+    """NeRF in Renders in the GUI: a camera where the view is, F12 without the NeRF and with
+    it (Cycles); the test compares the two where the cube stands and where the NeRF is."""
+    from bpy_extras.object_utils import world_to_camera_view
+
+    scene = bpy.context.scene
+    window, area, region = gui.view3d()
+    camera = bpy.data.objects.new("F12 camera", bpy.data.cameras.new("F12 camera"))
+    scene.collection.objects.link(camera)
+    camera.matrix_world = area.spaces.active.region_3d.view_matrix.inverted()
+    scene.camera = camera
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 120, 80, 100
+    scene.render.engine, scene.cycles.samples, scene.view_settings.view_transform = "CYCLES", 8, "Standard"
+    for obj in scene.objects:  # the scene's own meshes are hidden from the render too: the NeRF stands for them
+        obj.hide_render = obj.hide_render or (obj.type == "MESH" and obj.name not in (FRONT, BEHIND))
+    bpy.app.handlers.render_complete.append(_render_done)
+    yield from f12("f12_alone")
+    with bpy.context.temp_override(window=window, area=area, region=region):
+        turned_on = sorted(bpy.ops.nerf.render_composite())
+    yield from f12("f12_nerf")
+    composite = sys.modules[gui.MODULE + ".render_composite"]
+    corners = [world_to_camera_view(scene, camera, bpy.data.objects[FRONT].matrix_world @ Vector(c))
+               for c in bpy.data.objects[FRONT].bound_box]
+    report["live"]["f12"] = {"turned_on": turned_on, "message": composite.last_message,
+                             "server": composite.client.state(), "size": [120, 80],
+                             "cube": [min(c.x for c in corners), min(c.y for c in corners),
+                                      max(c.x for c in corners), max(c.y for c in corners)]}
+    with bpy.context.temp_override(window=window, area=area, region=region):
+        bpy.ops.nerf.render_composite()
+    bpy.app.handlers.render_complete.remove(_render_done)
+    gui.log(f"F12 with the NeRF: {report['live']['f12']}")
+
+
 def flow():
     yield from gui.enable_add_on()
     yield from gui.open_nerf_tab()
@@ -289,6 +343,7 @@ def flow():
     yield 2.0  # its last samples
     yield from capture("live_3_rendered_cycles")
     shading.type = "SOLID"
+    yield from f12_with_the_nerf()
     yield from faults()
     gui.log("live view flow finished")
 
