@@ -262,15 +262,17 @@ def test_f12_composites_the_nerf_by_depth_in_a_frame_and_an_animation(session):
     camera moves), each scored by region (``_composite_scores``)."""
     composite = session["render_composite"]
     folder = Path(composite["folder"])
-    keys = ("turn_on", "alone", "animation", "still", "eevee", "turn_off")
-    assert [composite[key] for key in keys] == [["FINISHED"]] * 6 and not composite["on_after"], composite
+    keys = ("turn_on", "alone", "animation", "still", "turn_off") + (("eevee",) if "eevee" in composite else ())
+    assert [composite[key] for key in keys] == [["FINISHED"]] * len(keys) and not composite["on_after"], composite
+    # EEVEE's render in 4.2 and 5.0 (the newest here), one of each of Z Combine's APIs.
+    assert ("eevee" in composite) == (session["blender"][:3] in ("4.2", "5.0")), session["blender"]
     # Its nodes are added to the compositor, and removed when it is turned off.
     nerf_nodes = {"NeRF Z Combine", "NeRF Colour", "NeRF Depth", "NeRF Depth Channel"}
     assert nerf_nodes <= set(composite["nodes_on"]) and not nerf_nodes & set(composite["nodes_after"]), composite
     assert composite["message"].startswith("frame 2: the NeRF rendered in"), composite["message"]
     assert composite["server_after"] == "off"  # the render's server stopped with the render
     scores = {name: _composite_scores(folder, name, frame) for name, frame in
-              (("f12_0001", 1), ("f12_0002", 2), ("f12_0003", 3), ("still", 2), ("eevee", 2))}
+              (("f12_0001", 1), ("f12_0002", 2), ("f12_0003", 3), ("still", 2), ("eevee", 2)) if name != "eevee" or "eevee" in composite}
     print("NeRF in Renders: " + "; ".join(f"{name}: NeRF {s['nerf_db']:.1f} dB, scene {s['scene_db']:.1f} dB, "
                                           f"{s['neither']} edge pixels" for name, s in scores.items()))
     # Measured on Blender 5.0.1 (64×48, the session's 300-step fast model): the NeRF's pixels

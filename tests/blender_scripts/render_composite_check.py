@@ -10,8 +10,8 @@ it fills the frame. Both glow (an emission shader), so Cycles renders them flat.
 What is written into WORK/composite/:
 - ``alone_NNNN.png``: Cycles alone, NeRF in Renders off, frames 1-3;
 - ``f12_NNNN.png``: the same frames with it on (an animation render), ``still.png`` frame 2 by
-  F12 (a still), ``eevee.png`` frame 2 by EEVEE (one EEVEE render: after the first, each takes
-  the bpy module about 50 s here);
+  F12 (a still), ``eevee.png`` frame 2 by EEVEE where asked (after the first EEVEE render,
+  each takes the bpy module about 50 s here);
 - ``nerf/NNNN.png``: the NeRF's own ``render`` of each frame's camera at the render size.
 """
 
@@ -106,9 +106,9 @@ def nerf_renders(context, module: str, out: Path) -> None:
         str(results_ops.run_dir(context)), str(cameras), str(out / "nerf")))
 
 
-def run(context, module: str, work: Path, originals: list) -> dict:
-    """The whole check around ``originals``, the meshes the NeRF learnt; what it found, for the
-    report."""
+def run(context, module: str, work: Path, originals: list, eevee: bool = True) -> dict:
+    """The whole check around ``originals``, the meshes the NeRF learnt (with the EEVEE render
+    where ``eevee``); what it found, for the report."""
     import datasets_gen.core.camera_path  # noqa: F401  (from the extension's wheel: camera_to_nerf)
 
     corners = [obj.matrix_world @ mathutils.Vector(corner) for obj in originals for corner in obj.bound_box]
@@ -137,7 +137,8 @@ def run(context, module: str, work: Path, originals: list) -> dict:
     report["animation"] = _render(scene, "CYCLES", out / "f12_", animation=True)
     scene.frame_set(2)
     report["still"] = _render(scene, "CYCLES", out / "still.png", animation=False)
-    report["eevee"] = _render(scene, "BLENDER_EEVEE", out / "eevee.png", animation=False)
+    if eevee:
+        report["eevee"] = _render(scene, "BLENDER_EEVEE", out / "eevee.png", animation=False)
     report["message"] = composite.last_message
     report["server_after"] = composite.client.state()
     report["turn_off"] = sorted(bpy.ops.nerf.render_composite())
