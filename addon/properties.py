@@ -74,8 +74,8 @@ class NerfSettings(bpy.types.PropertyGroup):
         name="Move With", type=bpy.types.Object, poll=lambda _settings, obj: obj.type == "EMPTY",
         description="An Empty whose transform moves the NeRF in the live view (none: the NeRF sits where the "
                     "dataset's scene was, over its objects)")
-    render_composite: BoolProperty(
-        name="NeRF in Renders", default=False,
+    render_composite: BoolProperty(  # state, drawn as the button's pressed look, not as a checkbox
+        name="NeRF in Renders", default=False, options={"HIDDEN"},
         description="Whether F12 renders and animations have the run's NeRF composited in by depth (set by the "
                     "NeRF in Renders button, which adds or removes its compositor nodes)")
     # Results of the last comparison (shown in the panel).

@@ -290,7 +290,8 @@ def label_widths() -> None:
     column = 0.4 * (region.width - 2 * 10 * scale) - 0.4 * 20 * scale
     settings = bpy.context.scene.nerf
     labels = {prop.identifier: prop.name for prop in settings.bl_rna.properties
-              if prop.identifier not in ("rna_type", "name") and not prop.identifier.startswith("compare_")}
+              if prop.identifier not in ("rna_type", "name") and not prop.identifier.startswith("compare_")
+              and not prop.is_hidden}  # state an operator sets, drawn as a button, not a label
     # A set of flags (ENUM_FLAG) is drawn as one row of toggle buttons sharing the value column.
     value_column = 0.6 * (region.width - 2 * 10 * scale)
     flags = {prop.identifier: {"button_px": value_column / len(prop.enum_items),
