@@ -163,7 +163,7 @@ def clear_images(scene) -> None:
 
 # --- the render handlers -------------------------------------------------------------------
 
-_render = {"on": False, "frame": None}  # a render in progress, and the frame whose NeRF is in the images
+_render = {"on": False}  # a render is in progress (set by render_init, cleared when it ends)
 
 
 def _enabled(scene) -> bool:
@@ -215,7 +215,6 @@ def _render_pre(scene, *_args) -> None:
     """Before each frame: the images emptied, so a frame the NeRF misses shows the scene alone,
     never the frame before."""
     if _render["on"] and _enabled(scene):
-        _render["frame"] = None
         clear_images(scene)
 
 
@@ -240,13 +239,12 @@ def _frame_changed(scene, depsgraph=None) -> None:
     colour, depth = compositor_pixels(frame)
     _write(_image(COLOUR_IMAGE, width, height), colour)
     _write(_image(DEPTH_IMAGE, width, height), depth)
-    _render["frame"] = frame_number
     _say(f"frame {frame_number}: the NeRF rendered in {frame.seconds:.2f} s (iteration {frame.iteration})")
 
 
 @bpy.app.handlers.persistent
 def _render_done(*_args) -> None:
-    _render["on"], _render["frame"] = False, None
+    _render["on"] = False
     client.stop()
 
 
