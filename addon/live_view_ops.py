@@ -13,6 +13,16 @@ from . import render_composite, viewport_overlay
 from .paths import backend_python, run_dir, settings
 
 
+def _cannot_serve(context) -> str:
+    """Why the run cannot be served yet ("" where it can)."""
+    run = run_dir(context)
+    if not backend_python(context):
+        return "no backend Python: press Set Up Backend, or choose one in the preferences"
+    if not (run / CHECKPOINT_NAME).is_file():
+        return f"{run}: no checkpoint yet: train first (a run still training is served from its first checkpoint)"
+    return ""
+
+
 class NERF_OT_live_view(bpy.types.Operator):
     """Draw the run's NeRF in every 3D View, depth-tested against the scene (press again to
     stop; after the server stopped, press to start it again)"""
@@ -24,26 +34,12 @@ class NERF_OT_live_view(bpy.types.Operator):
         if viewport_overlay.state() in ("starting", "ready"):
             viewport_overlay.stop()
             return {"FINISHED"}
-        python, run = backend_python(context), run_dir(context)
-        if not python:
-            self.report({"ERROR"}, "no backend Python: press Set Up Backend, or choose one in the preferences")
+        reason = _cannot_serve(context)
+        if reason:
+            self.report({"ERROR"}, reason)
             return {"CANCELLED"}
-        if not (run / CHECKPOINT_NAME).is_file():
-            self.report({"ERROR"}, f"{run}: no checkpoint yet: train first (the live view also follows a run "
-                                   "while it trains, from its first checkpoint)")
-            return {"CANCELLED"}
-        viewport_overlay.start(python, run, device=settings(context).train_device)
+        viewport_overlay.start(backend_python(context), run_dir(context), device=settings(context).train_device)
         return {"FINISHED"}
-
-
-def _cannot_serve(context) -> str:
-    """Why the run cannot be served yet ("" where it can)."""
-    run = run_dir(context)
-    if not backend_python(context):
-        return "no backend Python: press Set Up Backend, or choose one in the preferences"
-    if not (run / CHECKPOINT_NAME).is_file():
-        return f"{run}: no checkpoint yet: train first"
-    return ""
 
 
 class NERF_OT_render_composite(bpy.types.Operator):

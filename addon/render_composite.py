@@ -21,7 +21,6 @@ from pathlib import Path
 
 import bpy
 import numpy as np
-from mathutils import Matrix
 
 from nerf_contract.run_layout import CHECKPOINT_NAME
 
@@ -29,6 +28,7 @@ from . import sources
 from .composite_pixels import EMPTY_DEPTH, compositor_pixels
 from .live_view import LiveViewClient
 from .paths import backend_python
+from .viewport_overlay import placement
 
 COLOUR_IMAGE, DEPTH_IMAGE = "NeRF Render", "NeRF Render Depth"
 NODE_PREFIX = "NeRF "  # the nodes set_up adds, found again by tear_down
@@ -184,13 +184,6 @@ def camera_request(scene, depsgraph) -> tuple[list, list, int, int]:
     return [list(row) for row in view], [list(row) for row in projection], width, height
 
 
-def _placement(scene):
-    anchor = scene.nerf.live_view_anchor
-    if anchor is None or client.ready is None:
-        return None
-    return [list(row) for row in anchor.matrix_world @ Matrix(client.ready["nerf_to_world"])]
-
-
 def _say(message: str) -> None:
     global last_message
     last_message = message
@@ -231,7 +224,7 @@ def _frame_changed(scene, depsgraph=None) -> None:
         return
     try:
         view, projection, width, height = camera_request(scene, depsgraph)
-        frame = client.render(view, projection, width, height, nerf_to_world=_placement(scene),
+        frame = client.render(view, projection, width, height, nerf_to_world=placement(scene, client),
                               timeout=FRAME_TIMEOUT_S)
     except RuntimeError as error:
         _say(f"no NeRF in frame {frame_number}: {error}")

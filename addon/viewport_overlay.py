@@ -147,13 +147,14 @@ def _tag_redraw(key: int | None = None) -> None:
             area.tag_redraw()
 
 
-def _placement(context):
-    """Where the NeRF's frame sits: the dataset's placement, moved by the anchor object's
-    transform where one is chosen; None for the server's default."""
-    anchor = context.scene.nerf.live_view_anchor if context.scene is not None else None
-    if anchor is None or client.ready is None:
+def placement(scene, server: LiveViewClient):
+    """Where the NeRF's frame sits: the dataset's placement (``server``'s ``ready`` event),
+    moved by the anchor object's transform where one is chosen; None for the server's default.
+    The live view's and F12's."""
+    anchor = scene.nerf.live_view_anchor if scene is not None else None
+    if anchor is None or server.ready is None:
         return None
-    return anchor.matrix_world @ Matrix(client.ready["nerf_to_world"])
+    return anchor.matrix_world @ Matrix(server.ready["nerf_to_world"])
 
 
 def _send_next() -> None:
@@ -229,7 +230,7 @@ def _draw() -> None:
         return
     key = region.as_pointer()
     scheduler.update(key, view.view_matrix, view.window_matrix, region.width, region.height, time.monotonic(),
-                     nerf_to_world=_placement(context))
+                     nerf_to_world=placement(context.scene, client))
     _send_next()  # a view that moved asks at once, not at the next tick
     region_view = scheduler.regions.get(key)
     frame = region_view.frame if region_view is not None else None
