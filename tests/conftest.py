@@ -1,13 +1,18 @@
 """Shared fixtures: a tiny dataset rendered by real Blender (the bpy module) through the
-generator's own command line, once per test session."""
+generator's own command line, and runs trained on it, once per test session: under
+pytest-xdist (``make test`` runs two workers), once for all workers."""
 
 from __future__ import annotations
 
+import os
+import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from filelock import FileLock
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DIR = REPO_ROOT.parent / "shared"
@@ -27,12 +32,30 @@ def run_python(*args: str, timeout: float = 900, check: bool = True, **kwargs) -
     return result
 
 
+def made_once(tmp_path_factory, name: str, make: Callable[[Path], None]) -> Path:
+    """A folder ``make(folder)`` fills, made once per test session. Under pytest-xdist the first
+    worker to ask makes it (under a file lock) and each worker gets its own copy, so that tests
+    which write into it (renders, reports) never race another worker's."""
+    own = tmp_path_factory.mktemp(name) / name
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        make(own)
+        return own
+    shared_root = tmp_path_factory.getbasetemp().parent  # the same for every worker of this run
+    shared, done = shared_root / name, shared_root / f"{name}.done"
+    with FileLock(str(shared_root / f"{name}.lock")):
+        if not done.is_file():  # a worker that failed to make it left no mark: the next one tries again
+            shutil.rmtree(shared, ignore_errors=True)
+            make(shared)
+            done.touch()
+    shutil.copytree(shared, own, symlinks=True)
+    return own
+
+
 @pytest.fixture(scope="session")
 def tiny_demo_dataset(tmp_path_factory) -> Path:
     """The demo scene rendered by Cycles at 40×40 (30 train, 2 val, 4 test views)."""
-    out = tmp_path_factory.mktemp("tiny_demo") / "dataset"
-    run_python("-m", "datasets_gen", *TINY_DEMO_ARGS, "--out", str(out))
-    return out
+    return made_once(tmp_path_factory, "tiny_demo",
+                     lambda out: run_python("-m", "datasets_gen", *TINY_DEMO_ARGS, "--out", str(out)))
 
 
 @pytest.fixture(scope="session")
@@ -49,19 +72,17 @@ TRAIN_ITERS = 400
 @pytest.fixture(scope="session")
 def trained_run(tiny_demo_dataset, tmp_path_factory) -> Path:
     """The preview preset trained for TRAIN_ITERS iterations on the tiny demo dataset."""
-    run = tmp_path_factory.mktemp("runs") / "preview"
-    run_python("-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "preview", "--out", str(run),
-               "--iters", str(TRAIN_ITERS), "--no-progress")
-    return run
+    return made_once(tmp_path_factory, "preview_run", lambda run: run_python(
+        "-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "preview", "--out", str(run),
+        "--iters", str(TRAIN_ITERS), "--no-progress"))
 
 
 @pytest.fixture(scope="session")
 def trained_surface_run(tiny_demo_dataset, tmp_path_factory) -> Path:
     """The surface preset trained for 600 steps on the tiny demo dataset (from its prior)."""
-    run = tmp_path_factory.mktemp("runs") / "surface"
-    run_python("-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "surface", "--iters", "600",
-               "--out", str(run), "--no-progress")
-    return run
+    return made_once(tmp_path_factory, "surface_run", lambda run: run_python(
+        "-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "surface", "--iters", "600",
+        "--out", str(run), "--no-progress"))
 
 
 def camera_path_through_test_views(dataset: Path, folder: Path, repeats: int = 1, copy_images: bool = True) -> tuple:
