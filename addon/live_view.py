@@ -138,13 +138,16 @@ class LiveViewClient:
 
     # --- frames --------------------------------------------------------------------------
 
-    def request(self, view_matrix, projection_matrix, width: int, height: int, nerf_to_world=None) -> int | None:
-        """Asks for a frame; its request id, or None where the server is not running."""
+    def request(self, view_matrix, projection_matrix, width: int, height: int, nerf_to_world=None,
+                step_scale: float = 1.0) -> int | None:
+        """Asks for a frame (``step_scale``: a draft's march step, ``view_frames``'s); its
+        request id, or None where the server is not running."""
         if not self.running():
             return None
         self._next_id += 1
         line = view_frames.render_request(self._next_id, view_matrix=view_matrix, projection_matrix=projection_matrix,
-                                          width=width, height=height, nerf_to_world=nerf_to_world)
+                                          width=width, height=height, nerf_to_world=nerf_to_world,
+                                          step_scale=step_scale)
         try:
             self._process.stdin.write(line + "\n")
             self._process.stdin.flush()
@@ -209,6 +212,10 @@ class LiveViewClient:
 MOVING_DIVISOR = 4  # while the view moves: a quarter of the region's side (1/16 of its pixels)
 REST_SECONDS = 0.25  # a view unchanged this long has come to rest: the whole region is drawn
 LOST_SECONDS = 60.0  # a request unanswered this long is given up (the server restarted, or hung)
+# A view's frames in turn: a quarter-size draft while it moves, then at rest the whole region as
+# a draft (on a CPU, within about a second of resting) and then exact. A frame of a later stage
+# never gives way to an earlier one of the same view.
+MOVING, RESTING_DRAFT, EXACT = 1, 2, 3
 
 
 def _rounded(matrix) -> tuple:
@@ -227,20 +234,27 @@ class RegionView:
     changed_at: float
     frame: LiveFrame | None = None
     frame_signature: tuple | None = None  # the view the frame was rendered for
-    frame_full: bool = False
+    frame_stage: int = 0  # MOVING, RESTING_DRAFT or EXACT: how far the frame came
 
     @property
     def signature(self) -> tuple:
         return self.view_matrix, self.projection_matrix, self.width, self.height, self.nerf_to_world
 
-    def wants(self, now: float) -> tuple[int, int] | None:
-        """The size of frame this region needs next, or None where its frame is current."""
+    def wants(self, now: float) -> int | None:
+        """The stage of frame this region needs next, or None where its frame is as good as
+        it gets for now."""
         resting = now - self.changed_at >= REST_SECONDS
-        if self.frame_signature == self.signature and (self.frame_full or not resting):
-            return None
-        if resting:
-            return self.width, self.height
-        return max(1, -(-self.width // MOVING_DIVISOR)), max(1, -(-self.height // MOVING_DIVISOR))
+        current = self.frame_signature == self.signature
+        if not resting:
+            return None if current else MOVING
+        if current and self.frame_stage >= RESTING_DRAFT:
+            return None if self.frame_stage == EXACT else EXACT
+        return RESTING_DRAFT
+
+    def size(self, stage: int) -> tuple[int, int]:
+        if stage == MOVING:
+            return max(1, -(-self.width // MOVING_DIVISOR)), max(1, -(-self.height // MOVING_DIVISOR))
+        return self.width, self.height
 
 
 @dataclass(frozen=True)
@@ -252,31 +266,40 @@ class ViewRequest:
     height: int
     nerf_to_world: tuple | None
     signature: tuple
-    full: bool
+    stage: int
+
+    @property
+    def step_scale(self) -> float:
+        return 1.0 if self.stage == EXACT else view_frames.DRAFT_STEP_SCALE
 
 
 class ViewScheduler:
-    """Which 3D View the server renders next, and at what size: one request in flight at a
-    time (a frame is rendered for the view as it is when the server gets to it, never queued
-    behind stale ones), a quarter of the region's side while its view moves, the whole region
-    once it has rested for REST_SECONDS; moving views first, then the others in turn, so
-    several 3D Views all get drawn. Plain Python: the viewport's draw handler reports each
-    region's view, Blender's timer asks for the next request and hands back the frames.
+    """Which 3D View the server renders next, and how: one request in flight at a time (a
+    frame is rendered for the view as it is when the server gets to it, never queued behind
+    stale ones), a quarter of the region's side as a draft while its view moves, the whole
+    region once it has rested for REST_SECONDS, first as a draft and then exact; moving views
+    first, then the others in turn, so several 3D Views all get drawn. Plain Python: the
+    viewport's draw handler reports each region's view, Blender's timer asks for the next
+    request and hands back the frames.
 
     Example:
         >>> scheduler = ViewScheduler()
         >>> identity = [[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]
         >>> scheduler.update("view", identity, identity, 400, 300, now=0.0)
         >>> request = scheduler.next_request(now=0.1)
-        >>> request.width, request.height, request.full   # moving: a quarter of each side
-        (100, 75, False)
+        >>> request.width, request.height, request.step_scale   # moving: a quarter of each side, a draft
+        (100, 75, 2.0)
         >>> scheduler.sent(1, request, now=0.1)
         >>> scheduler.next_request(now=0.2) is None   # one in flight at a time
         True
         >>> scheduler.delivered(LiveFrame(1, 100, 75, b"", b"", 0.05, 0))
         'view'
-        >>> scheduler.next_request(now=0.5).full   # at rest: the whole region
-        True
+        >>> rest = scheduler.next_request(now=0.5)   # at rest: the whole region, a draft first
+        >>> rest.width, rest.step_scale
+        (400, 2.0)
+        >>> scheduler.sent(2, rest, now=0.5); _ = scheduler.delivered(LiveFrame(2, 400, 300, b"", b"", 0.5, 0))
+        >>> scheduler.next_request(now=1.1).step_scale   # then exact
+        1.0
     """
 
     def __init__(self) -> None:
@@ -318,12 +341,12 @@ class ViewScheduler:
         moving = [key for key in order if now - self.regions[key].changed_at < REST_SECONDS]
         for key in moving + [key for key in order if key not in moving]:
             region = self.regions[key]
-            size = region.wants(now)
-            if size is not None:
+            stage = region.wants(now)
+            if stage is not None:
                 self._turn = keys.index(key) + 1
-                full = size == (region.width, region.height)
-                return ViewRequest(key, region.view_matrix, region.projection_matrix, size[0], size[1],
-                                   region.nerf_to_world, region.signature, full)
+                width, height = region.size(stage)
+                return ViewRequest(key, region.view_matrix, region.projection_matrix, width, height,
+                                   region.nerf_to_world, region.signature, stage)
         return None
 
     def sent(self, request_id: int, request: ViewRequest, now: float) -> None:
@@ -344,5 +367,5 @@ class ViewScheduler:
         region = self.regions.get(request.key)
         if region is None:
             return None
-        region.frame, region.frame_signature, region.frame_full = frame, request.signature, request.full
+        region.frame, region.frame_signature, region.frame_stage = frame, request.signature, request.stage
         return request.key

@@ -162,7 +162,7 @@ def _send_next() -> None:
     if request is None:
         return
     request_id = client.request(request.view_matrix, request.projection_matrix, request.width, request.height,
-                                nerf_to_world=request.nerf_to_world)
+                                nerf_to_world=request.nerf_to_world, step_scale=request.step_scale)
     if request_id is not None:
         scheduler.sent(request_id, request, time.monotonic())
 

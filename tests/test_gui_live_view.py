@@ -108,9 +108,11 @@ def test_orbiting_draws_quarter_frames_then_the_whole_region(live):
     assert orbit["view_changes"] and orbit["moving_frames"] >= 2, orbit
     width, height = orbit["region"]
     assert [-(-width // 4), -(-height // 4)] in [list(size) for size in orbit["moving_sizes"]], orbit
+    assert orbit["rest_to_full_seconds"] < orbit["rest_to_exact_seconds"], orbit  # the draft, then exact
     print(f"live view over A.blend's run in Blender's GUI (software OpenGL, 2 cores shared with it): "
           f"{orbit['moving_fps']:.1f} frames a second while orbiting at {-(-width // 4)}×{-(-height // 4)}, "
-          f"the whole {width}×{height} region {orbit['rest_to_full_seconds']:.2f} s after resting; render "
+          f"the whole {width}×{height} region {orbit['rest_to_full_seconds']:.2f} s after resting (exact "
+          f"{orbit['rest_to_exact_seconds']:.2f} s); render "
           f"{orbit['render_seconds_median'] * 1e3:.0f} ms, upload {orbit['upload_seconds_median'] * 1e3:.1f} ms, "
           f"draw {orbit['draw_seconds_median'] * 1e3:.2f} ms (medians); the whole region's upload "
           f"{orbit['full_upload_seconds'] * 1e3:.1f} ms")

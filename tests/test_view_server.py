@@ -151,6 +151,38 @@ def test_frames_match_the_runs_renderer_with_the_cameras_depth(trained_run, test
     assert not any(tmp_path.joinpath("frames").iterdir()), "the server leaves no frame file behind"
 
 
+@pytest.fixture(scope="module")
+def marched_run(tiny_demo_dataset, tmp_path_factory):
+    """The fast preset (a marched grid) for 300 steps: the live view's drafts march it coarser."""
+    run = tmp_path_factory.mktemp("marched") / "run"
+    run_python("-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "fast", "--iters", "300",
+               "--out", str(run), "--no-progress")
+    return run
+
+
+def test_a_draft_marches_a_coarser_step_close_to_the_exact_frame(marched_run, tmp_path):
+    """``step_scale`` 2 (the add-on's drafts): fewer samples a ray, so not the exact frame, yet
+    within 30 dB of it where the model is (opacity and depth too); the model's own step is
+    back afterwards (the next exact frame is the first one, bit for bit)."""
+    split = load_split(RunFolder(marched_run).read_config()["dataset"], "test")
+    intrinsics, pose = split.intrinsics, split.poses[0]
+    server = Server(marched_run, tmp_path / "frames")
+    frames = {}
+    for request_id, scale in ((1, 1.0), (2, view_frames.DRAFT_STEP_SCALE), (3, 1.0)):
+        server.send(_request(request_id, intrinsics, pose, 40, 40, step_scale=scale))
+        frames[request_id] = server.frame(server.event())
+    server.send(view_frames.quit_request())
+    (exact, exact_depth), (draft, draft_depth), (again, _) = frames[1], frames[2], frames[3]
+    assert np.array_equal(exact, again)
+    difference = np.abs(draft - exact)
+    psnr = 10 * np.log10(1.0 / float(np.mean(difference[..., :3] ** 2)))
+    print(f"draft (step ×{view_frames.DRAFT_STEP_SCALE:g}) against exact, 40×40: {psnr:.2f} dB, "
+          f"opacity off by {float(difference[..., 3].max()):.4f} at most")
+    assert difference.max() > 0 and psnr > 30.0  # measured 37.3 dB
+    hit = np.isfinite(exact_depth) & np.isfinite(draft_depth) & (exact[..., 3] > 0.99)
+    assert hit.sum() > 100 and np.median(np.abs(draft_depth[hit] - exact_depth[hit]) / exact_depth[hit]) < 0.01
+
+
 def test_the_latest_request_wins_and_bad_ones_get_one_line(trained_run, test_view, tmp_path):
     intrinsics, pose = test_view
     server = Server(trained_run, tmp_path / "frames")
@@ -160,6 +192,10 @@ def test_the_latest_request_wins_and_bad_ones_get_one_line(trained_run, test_vie
                                      width=8, height=8)
     server.send(bad)
     assert server.event()["message"] == "request 1: view_matrix must be a 4×4 matrix of finite numbers"
+    for scale in (0.5, 9, "2", True):
+        request = json.loads(_request(2, intrinsics, pose, 8, 8))
+        server.send(json.dumps({**request, "step_scale": scale}))
+        assert server.event() == {"event": "error", "id": 2, "message": "request 2: step_scale must be a number from 1 to 8"}
     # Six requests at once: each replaces the one before it while it waits, so the server draws
     # the last, and the first only where it took it before the others arrived.
     server.process.stdin.write("".join(_request(i, intrinsics, pose, 48, 48) + "\n" for i in range(10, 16)))
@@ -286,10 +322,13 @@ def _processes_with(text: bytes) -> list[str]:
 
 
 @pytest.mark.parametrize("beside", (False, True), ids=("alone", "beside-training"))
-def test_bench_view_times_the_server_as_the_add_on_uses_it(trained_run, tmp_path, beside):
-    """``bench-view``: the real server orbited at a quarter of the size, then the whole frame;
-    with ``--beside-training``, while a real training runs (and is gone afterwards)."""
-    result = run_python("-m", "nerf_backend", "bench-view", str(trained_run), "--size", "32", "--frames", "3",
+def test_bench_view_times_the_server_as_the_add_on_uses_it(marched_run, tmp_path, beside):
+    """``bench-view``: the real server orbited at a quarter of the size in drafts, then the
+    whole frame, a draft and exact, and the trade of march steps against the exact frame; with
+    ``--beside-training``, while a real training runs (and is gone afterwards)."""
+    from nerf_backend.bench.view_speed import STEP_SCALES
+
+    result = run_python("-m", "nerf_backend", "bench-view", str(marched_run), "--size", "32", "--frames", "3",
                         "--device", "cpu", "--out", str(tmp_path / "bench"), *(["--beside-training"] if beside else []))
     report = json.loads((tmp_path / "bench" / "view_speed.json").read_text())
     assert report["training_beside_threads"] == (max(1, os.cpu_count() - 1) if beside else None)
@@ -299,7 +338,12 @@ def test_bench_view_times_the_server_as_the_add_on_uses_it(trained_run, tmp_path
     assert report["region"] == [32, 32] and report["orbit_size"] == [8, 8] and report["orbit"]["frames"] == 3
     assert 0 < report["orbit"]["render_median_seconds"] <= report["orbit"]["median_seconds"]
     assert 0 < report["full_frame"]["render_seconds"] <= report["full_frame"]["seconds"]
+    assert 0 < report["full_frame"]["exact_render_seconds"] <= report["full_frame"]["exact_seconds"]
     assert "frames a second" in result.stdout and report["start_seconds"] > 0
+    trade = {row["step_scale"]: row for row in report["step_trade"]}
+    assert tuple(trade) == STEP_SCALES and all(row["pixels_compared"] > 0 for row in trade.values())
+    assert trade[1.0]["psnr_against_exact"] is None  # the exact frame again: the same pixels
+    assert 25.0 < trade[view_frames.DRAFT_STEP_SCALE]["psnr_against_exact"] and "| ×2 |" in result.stdout, result.stdout
 
 
 def test_the_add_ons_client_draws_newest_first_and_says_when_the_server_was_killed(trained_run, test_view):
@@ -338,10 +382,11 @@ def test_the_add_ons_client_draws_newest_first_and_says_when_the_server_was_kill
 
 
 def test_the_scheduler_serves_moving_views_first_then_every_view_in_turn():
-    """Several 3D Views: one request in flight; a moving view gets quarter frames before any
-    other is served; at rest every view gets its whole region in turn; a frame is filed with
-    the view it was asked for, and a region that goes is forgotten."""
-    from addon.live_view import REST_SECONDS, LiveFrame, ViewScheduler
+    """Several 3D Views: one request in flight; a moving view gets quarter-size drafts before
+    any other is served; at rest every view gets its whole region in turn, a draft and then
+    exact; a frame is filed with the view it was asked for, and a region that goes is forgotten."""
+    from addon.live_view import EXACT, MOVING, REST_SECONDS, RESTING_DRAFT, LiveFrame, ViewScheduler
+    from nerf_contract.view_frames import DRAFT_STEP_SCALE
 
     def frame(request_id, request):
         return LiveFrame(request_id, request.width, request.height, b"", b"", 0.01, 0)
@@ -354,27 +399,29 @@ def test_the_scheduler_serves_moving_views_first_then_every_view_in_turn():
     for key in ("a", "b", "c"):
         scheduler.update(key, eye, eye, 401, 300, now=0.0)
     served, now = [], 1.0
-    for request_id in range(1, 4):  # at rest: each of the three, whole, in turn
+    for request_id in range(1, 7):  # at rest: each of the three, whole, in turn: drafts, then exact
         request = scheduler.next_request(now)
         scheduler.sent(request_id, request, now)
         assert scheduler.next_request(now) is None  # one at a time
         assert scheduler.delivered(frame(request_id, request)) == request.key
-        served.append((request.key, request.width, request.height, request.full))
-    assert sorted(served) == [(key, 401, 300, True) for key in "abc"]
-    assert scheduler.next_request(now) is None  # every view is current
+        served.append((request.key, request.width, request.height, request.stage, request.step_scale))
+    drafts = [(key, 401, 300, RESTING_DRAFT, DRAFT_STEP_SCALE) for key in "abc"]
+    assert sorted(served[:3]) == drafts and sorted(served[3:]) == [(key, 401, 300, EXACT, 1.0) for key in "abc"]
+    assert scheduler.next_request(now) is None  # every view is exact
     scheduler.update("b", moved, eye, 401, 300, now=now)  # b's view moves
     request = scheduler.next_request(now + 0.01)
-    assert (request.key, request.width, request.height, request.full) == ("b", 101, 75, False)
+    assert (request.key, request.width, request.height, request.stage) == ("b", 101, 75, MOVING)
+    assert request.step_scale == DRAFT_STEP_SCALE
     scheduler.sent(10, request, now)
     scheduler.update("b", eye, eye, 401, 300, now=now + 0.05)  # moved again before the frame came
     assert scheduler.delivered(frame(10, request)) == "b"
     assert scheduler.regions["b"].frame_signature != scheduler.regions["b"].signature  # drawn, yet stale
     request = scheduler.next_request(now + 0.06)
-    assert (request.key, request.full) == ("b", False)  # still moving: a quarter frame of the new view
+    assert (request.key, request.stage) == ("b", MOVING)  # still moving: a quarter frame of the new view
     scheduler.sent(11, request, now)
     scheduler.failed([11])  # refused by the server: the next may go
     request = scheduler.next_request(now + 0.05 + REST_SECONDS)
-    assert (request.key, request.full) == ("b", True)  # at rest: the whole region
+    assert (request.key, request.stage, request.width) == ("b", RESTING_DRAFT, 401)  # at rest: the whole region
     scheduler.sent(12, request, now)
     scheduler.keep_only({"a", "c"})  # b's area closed meanwhile
     assert scheduler.delivered(frame(12, request)) is None and set(scheduler.regions) == {"a", "c"}

