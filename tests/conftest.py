@@ -78,6 +78,14 @@ def trained_run(tiny_demo_dataset, tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def trained_marched_run(tiny_demo_dataset, tmp_path_factory) -> Path:
+    """The fast preset (a marched grid) trained for 300 steps on the tiny demo dataset."""
+    return made_once(tmp_path_factory, "fast_run", lambda run: run_python(
+        "-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "fast", "--iters", "300",
+        "--out", str(run), "--no-progress"))
+
+
+@pytest.fixture(scope="session")
 def trained_surface_run(tiny_demo_dataset, tmp_path_factory) -> Path:
     """The surface preset trained for 600 steps on the tiny demo dataset (from its prior)."""
     return made_once(tmp_path_factory, "surface_run", lambda run: run_python(

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 
-import pytest
 import torch
 from conftest import run_python
 
@@ -27,17 +26,9 @@ def test_each_sample_goes_through_its_own_cells_layer():
     assert packing.rows % BLOCK == 0 and packing.rows < samples + cells * BLOCK
 
 
-@pytest.fixture(scope="module")
-def fast_demo_run(tiny_demo_dataset, tmp_path_factory):
-    run = tmp_path_factory.mktemp("kilonerf") / "fast"
-    run_python("-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "fast", "--iters", "300",
-               "--out", str(run), "--no-progress")
-    return run
-
-
-def test_bench_kilonerf_distils_a_run_and_renders_both_through_the_same_march(fast_demo_run, tmp_path):
-    result = run_python("-m", "nerf_backend", "bench-kilonerf", str(fast_demo_run), "--seconds", "15", "--views", "2",
-                        "--cells", "4,4,4", "--device", "cpu", "--out", str(tmp_path / "kilo"))
+def test_bench_kilonerf_distils_a_run_and_renders_both_through_the_same_march(trained_marched_run, tmp_path):
+    result = run_python("-m", "nerf_backend", "bench-kilonerf", str(trained_marched_run), "--seconds", "15",
+                        "--views", "2", "--cells", "4,4,4", "--device", "cpu", "--out", str(tmp_path / "kilo"))
     report = json.loads((tmp_path / "kilo" / "kilonerf.json").read_text())
     models = report["models"]
     teacher, same_march, student = (models[name] for name in ("the run's model, the product's renderer",

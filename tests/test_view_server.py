@@ -151,22 +151,13 @@ def test_frames_match_the_runs_renderer_with_the_cameras_depth(trained_run, test
     assert not any(tmp_path.joinpath("frames").iterdir()), "the server leaves no frame file behind"
 
 
-@pytest.fixture(scope="module")
-def marched_run(tiny_demo_dataset, tmp_path_factory):
-    """The fast preset (a marched grid) for 300 steps: the live view's drafts march it coarser."""
-    run = tmp_path_factory.mktemp("marched") / "run"
-    run_python("-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "fast", "--iters", "300",
-               "--out", str(run), "--no-progress")
-    return run
-
-
-def test_a_draft_marches_a_coarser_step_close_to_the_exact_frame(marched_run, tmp_path):
+def test_a_draft_marches_a_coarser_step_close_to_the_exact_frame(trained_marched_run, tmp_path):
     """``step_scale`` 2 (the add-on's drafts): fewer samples a ray, so not the exact frame, yet
     within 30 dB of it where the model is (opacity and depth too); the model's own step is
     back afterwards (the next exact frame is the first one, bit for bit)."""
-    split = load_split(RunFolder(marched_run).read_config()["dataset"], "test")
+    split = load_split(RunFolder(trained_marched_run).read_config()["dataset"], "test")
     intrinsics, pose = split.intrinsics, split.poses[0]
-    server = Server(marched_run, tmp_path / "frames")
+    server = Server(trained_marched_run, tmp_path / "frames")
     frames = {}
     for request_id, scale in ((1, 1.0), (2, view_frames.DRAFT_STEP_SCALE), (3, 1.0)):
         server.send(_request(request_id, intrinsics, pose, 40, 40, step_scale=scale))
@@ -195,7 +186,8 @@ def test_the_latest_request_wins_and_bad_ones_get_one_line(trained_run, test_vie
     for scale in (0.5, 9, "2", True):
         request = json.loads(_request(2, intrinsics, pose, 8, 8))
         server.send(json.dumps({**request, "step_scale": scale}))
-        assert server.event() == {"event": "error", "id": 2, "message": "request 2: step_scale must be a number from 1 to 8"}
+        refused = "request 2: step_scale must be a number from 1 to 8"
+        assert server.event() == {"event": "error", "id": 2, "message": refused}
     # Six requests at once: each replaces the one before it while it waits, so the server draws
     # the last, and the first only where it took it before the others arrived.
     server.process.stdin.write("".join(_request(i, intrinsics, pose, 48, 48) + "\n" for i in range(10, 16)))
@@ -322,13 +314,13 @@ def _processes_with(text: bytes) -> list[str]:
 
 
 @pytest.mark.parametrize("beside", (False, True), ids=("alone", "beside-training"))
-def test_bench_view_times_the_server_as_the_add_on_uses_it(marched_run, tmp_path, beside):
+def test_bench_view_times_the_server_as_the_add_on_uses_it(trained_marched_run, tmp_path, beside):
     """``bench-view``: the real server orbited at a quarter of the size in drafts, then the
     whole frame, a draft and exact, and the trade of march steps against the exact frame; with
     ``--beside-training``, while a real training runs (and is gone afterwards)."""
     from nerf_backend.bench.view_speed import STEP_SCALES
 
-    result = run_python("-m", "nerf_backend", "bench-view", str(marched_run), "--size", "32", "--frames", "3",
+    result = run_python("-m", "nerf_backend", "bench-view", str(trained_marched_run), "--size", "32", "--frames", "3",
                         "--device", "cpu", "--out", str(tmp_path / "bench"), *(["--beside-training"] if beside else []))
     report = json.loads((tmp_path / "bench" / "view_speed.json").read_text())
     assert report["training_beside_threads"] == (max(1, os.cpu_count() - 1) if beside else None)

@@ -1,6 +1,7 @@
 """``bench-view RUN``: how fast the live view answers, measured as the add-on uses it: the real
-``serve`` process, its pipes and its frame files. A camera orbits the scene at a fraction of
-the frame's size as drafts (the add-on's frames while the view moves: ``DRAFT_STEP_SCALE``;
+``serve`` process, its pipes and its frame files. First the view at rest, untimed (what the
+add-on draws when the live view is turned on: the frame file grows to the region's size).
+Then a camera orbits the scene at a fraction of the frame's size as drafts (the add-on's frames while the view moves: ``DRAFT_STEP_SCALE``;
 each request sent when the frame before it is read), then rests and asks for the whole frame,
 a draft and then exact. Then the trade: the resting view's whole frame at each march step of
 ``STEP_SCALES``, its time and its PSNR against the exact frame.
@@ -17,6 +18,7 @@ makes, the whole frame's time after the rest (draft, and exact after it) and the
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
 import os
 import statistics
@@ -161,22 +163,28 @@ def view_speed(run: Path, out_dir: Path, size: int | None = None, fraction: floa
             if beside_training else None
         server = _Server(run, Path(folder), device)
 
-        def whole(request_id: int, scale: float) -> tuple[float, float, np.ndarray]:
-            return server.frame(view_frames.render_request(request_id, view_matrix=rest_view, projection_matrix=projection(
-                fl_x, fl_y, width, height), width=width, height=height, step_scale=scale))
+        request_ids = itertools.count()
+        rest_view = orbit_view(centre, radius, 0.0, math.radians(30)).tolist()
 
+        def whole(scale: float) -> tuple[float, float, np.ndarray]:
+            whole_projection = projection(fl_x, fl_y, width, height)
+            return server.frame(view_frames.render_request(next(request_ids), view_matrix=rest_view, width=width,
+                                                           height=height, projection_matrix=whole_projection,
+                                                           step_scale=scale))
+
+        for scale in (view_frames.DRAFT_STEP_SCALE, 1.0):  # untimed: the add-on's first frames, of the view at rest
+            whole(scale)
         orbit = []
         for index in range(frames + 1):  # the first is a warm-up, untimed
             view = orbit_view(centre, radius, 2 * math.pi * index / frames, math.radians(30)).tolist()
-            request = view_frames.render_request(index, view_matrix=view, projection_matrix=projection(
+            request = view_frames.render_request(next(request_ids), view_matrix=view, projection_matrix=projection(
                 fl_x, fl_y, width, height), width=small[0], height=small[1], step_scale=view_frames.DRAFT_STEP_SCALE)
             timing = server.frame(request)
             if index:
                 orbit.append(timing)
-        rest_view = orbit_view(centre, radius, 0.0, math.radians(30)).tolist()
-        draft = whole(frames + 1, view_frames.DRAFT_STEP_SCALE)
-        exact = whole(frames + 2, 1.0)
-        trade = [_trade_row(scale, whole(frames + 3 + index, scale), exact[2]) for index, scale in enumerate(STEP_SCALES)]
+        draft = whole(view_frames.DRAFT_STEP_SCALE)
+        exact = whole(1.0)
+        trade = [_trade_row(scale, whole(scale), exact[2]) for scale in STEP_SCALES]
         server.stop()
     seconds = [total for total, _, _ in orbit]
     report = {

@@ -110,7 +110,8 @@ def checked_request(request: dict) -> dict:
         checked["nerf_to_world"] = _matrix(request, "nerf_to_world")
     scale = request.get("step_scale", 1.0)
     if not isinstance(scale, (int, float)) or isinstance(scale, bool) or not 1.0 <= scale <= contract.MAX_STEP_SCALE:
-        raise NerfError(f"request {request.get('id')}: step_scale must be a number from 1 to {contract.MAX_STEP_SCALE:g}")
+        raise NerfError(f"request {request.get('id')}: step_scale must be a number from 1 to "
+                        f"{contract.MAX_STEP_SCALE:g}")
     checked["step_scale"] = float(scale)
     if abs(float(torch.linalg.det(checked["projection"] @ checked["view"]))) < 1e-12:
         raise NerfError(f"request {request.get('id')}: the view and projection matrices cannot be inverted")

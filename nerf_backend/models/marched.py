@@ -313,6 +313,28 @@ class MarchedModel(Model):
         t_near = torch.maximum(t_near, entry)
         return t_near, torch.maximum(torch.minimum(t_far, exit_), t_near)
 
+    def _render_compiled_inside(self, origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor,
+                                density: VolumeDensity, library, march: dict) -> RenderOutput:
+        """The compiled march of the rays that pass through the field's box; the others are the
+        background, with no per-ray work (the colour's share of a ray, the march's set-up): a
+        fitted box leaves about a third of lego's 800×800 views outside it."""
+        inside = (t_far > t_near).nonzero().squeeze(1)
+        if inside.numel() == origins.shape[0]:
+            ray_colour = self.field.ray_colour(directions, colour_network_dtype(origins.device))
+            return render_marched_compiled(origins, directions, t_near, t_far, density=density,
+                                           ray_colour=ray_colour, library=library, **march)
+        picked = [t.index_select(0, inside) for t in (origins, directions, t_near, t_far)]
+        background = torch.as_tensor(march["background"], dtype=origins.dtype, device=origins.device)
+        if background.dim() == 2:  # a colour a ray (training's random backgrounds)
+            march = {**march, "background": background.index_select(0, inside)}
+        ray_colour = self.field.ray_colour(picked[1], colour_network_dtype(origins.device))
+        out = render_marched_compiled(*picked, density=density, ray_colour=ray_colour, library=library, **march)
+        rgb = background.to(out.rgb.dtype).expand(origins.shape[0], 3).clone()
+        rgb[inside] = out.rgb
+        depth, opacity = out.depth.new_zeros(origins.shape[0]), out.opacity.new_zeros(origins.shape[0])
+        depth[inside], opacity[inside] = out.depth, out.opacity
+        return RenderOutput(rgb=rgb, depth=depth, opacity=opacity, weights=None, t_edges=None)
+
     def forward(
         self, origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor,
         background: Tensor | float = 1.0, generator: torch.Generator | None = None,
@@ -323,13 +345,12 @@ class MarchedModel(Model):
                      density_fn=self._frozen_density)
         if not self.training and not torch.is_grad_enabled():
             march["occupancy"] = self.render_occupancy()
-            ray_colour = self.field.ray_colour(directions, colour_network_dtype(origins.device))
             compiled = self._compiled_density(origins.device)
             if compiled is not None:
                 density, library = compiled
                 del march["density_fn"]
-                return [render_marched_compiled(origins, directions, t_near, t_far, density=density,
-                                                ray_colour=ray_colour, library=library, **march)]
+                return [self._render_compiled_inside(origins, directions, t_near, t_far, density, library, march)]
+            ray_colour = self.field.ray_colour(directions, colour_network_dtype(origins.device))
             return [render_marched_stopping_early(origins, directions, t_near, t_far, ray_colour=ray_colour, **march)]
         offset, lit_fn = None, None
         if self.training:  # one random offset per ray: unbiased, and every step still covered

@@ -208,7 +208,8 @@ def measure_orbit():
         "view_changes": view_changes,
         "moving_frames": len(moving), "moving_seconds": rested - start,
         "moving_fps": len(moving) / (rested - start), "moving_sizes": sorted({(w, h) for _, w, h in moving}),
-        "rest_to_full_seconds": full_at - rested, "rest_to_exact_seconds": exact_at - rested, "region": [viewport().width, viewport().height],
+        "rest_to_full_seconds": full_at - rested, "rest_to_exact_seconds": exact_at - rested,
+        "region": [viewport().width, viewport().height],
         "render_seconds_median": statistics.median(stats.render_seconds),
         "upload_seconds_median": statistics.median(stats.upload_seconds), "full_upload_seconds": full_upload,
         "draw_seconds_median": statistics.median(stats.draw_seconds)}
