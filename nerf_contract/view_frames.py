@@ -62,8 +62,9 @@ SLOT_HEADER_OFFSET = 64
 DATA_OFFSET = 4096
 BYTES_PER_PIXEL = 5 * 4  # RGBA and depth, float32
 # The draft frames' march step, as a multiple of the model's (fewer samples, a coarser sum).
-# Lego at 800×800 (10-minute model, 2 CPU cores): 2× rendered a frame in 0.60 of the exact
-# frame's time, at 35.3-37.6 dB against it (bench-view's table has the trade at 1.5, 2 and 3).
+# Lego at 800×800 (10-minute model, 2 CPU cores): 2× rendered a frame in 0.63 of the exact
+# frame's time, at 31.3 dB against it over the NeRF's pixels, about the model's own error
+# against Cycles (bench-view's table has the trade at 1.5, 2 and 3; docs/live_view.md).
 DRAFT_STEP_SCALE = 2.0
 MAX_STEP_SCALE = 8.0
 

@@ -164,7 +164,7 @@ class MarchedModel(Model):
         """The march's step ``scale`` times the trained one inside the block (the samples a ray
         fewer in proportion); the skip grid stays the one for the trained step, so no cell it
         marches is dropped. Measured on lego at 800×800 (the 10-minute model): twice the step
-        rendered in 0.60 of the time, at 35.3-37.6 dB against the exact frame."""
+        rendered in 0.63 of the time, at 31.3 dB against the exact frame (the NeRF's pixels)."""
         saved = self.step, self.samples_per_ray
         if scale != 1.0:
             self.step = self.field.march_step = saved[0] * scale
