@@ -1,9 +1,9 @@
 """``bench-view RUN``: how fast the live view answers, measured as the add-on uses it: the real
 ``serve`` process, its pipes and its frame files. First the view at rest, untimed (what the
 add-on draws when the live view is turned on: the frame file grows to the region's size).
-Then a camera orbits the scene at a fraction of the frame's size as drafts (the add-on's frames while the view moves: ``DRAFT_STEP_SCALE``;
-each request sent when the frame before it is read), then rests and asks for the whole frame,
-a draft and then exact. Then the trade: the resting view's whole frame at each march step of
+Then a camera orbits the scene at a fraction of the frame's size as drafts (the add-on's
+frames while the view moves, at ``DRAFT_STEP_SCALE``; each request sent when the frame before
+it is read), then rests and asks for the whole frame, a draft and then exact. Then the trade: the resting view's whole frame at each march step of
 ``STEP_SCALES``, its time and its PSNR against the exact frame.
 
 With ``beside_training``, a real ``train`` runs on the run's dataset the whole time, on all

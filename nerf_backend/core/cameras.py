@@ -133,7 +133,7 @@ def rays_from_matrices(view: Tensor, projection: Tensor, width: int, height: int
     inverse = torch.linalg.inv(projection.double() @ view.double())
     x = (torch.arange(width, dtype=torch.float64) + 0.5) * (2.0 / width) - 1.0
     y = 1.0 - (torch.arange(height, dtype=torch.float64) + 0.5) * (2.0 / height)
-    # inverse @ (x, y, z, 1) as a sum of the inverse's columns: no [H·W, 4] clip points built.
+    # inverse @ (x, y, z, 1) as a sum of the inverse's columns: the clip points are never built.
     on_plane = (y[:, None, None] * inverse[:, 1] + x[None, :, None] * inverse[:, 0]).reshape(-1, 4)
     ends = []
     for ndc_z in (-1.0, 1.0):
