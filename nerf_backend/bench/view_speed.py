@@ -166,8 +166,9 @@ def view_speed(run: Path, out_dir: Path, size: int | None = None, fraction: floa
         request_ids = itertools.count()
         rest_view = orbit_view(centre, radius, 0.0, math.radians(30)).tolist()
 
+        whole_projection = projection(fl_x, fl_y, width, height)
+
         def whole(scale: float) -> tuple[float, float, np.ndarray]:
-            whole_projection = projection(fl_x, fl_y, width, height)
             return server.frame(view_frames.render_request(next(request_ids), view_matrix=rest_view, width=width,
                                                            height=height, projection_matrix=whole_projection,
                                                            step_scale=scale))

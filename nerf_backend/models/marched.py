@@ -318,20 +318,21 @@ class MarchedModel(Model):
         """The compiled march of the rays that pass through the field's box; the others are the
         background, with no per-ray work (the colour's share of a ray, the march's set-up): a
         fitted box leaves about a third of lego's 800×800 views outside it."""
+        count = origins.shape[0]
         inside = (t_far > t_near).nonzero().squeeze(1)
-        if inside.numel() == origins.shape[0]:
-            ray_colour = self.field.ray_colour(directions, colour_network_dtype(origins.device))
-            return render_marched_compiled(origins, directions, t_near, t_far, density=density,
-                                           ray_colour=ray_colour, library=library, **march)
-        picked = [t.index_select(0, inside) for t in (origins, directions, t_near, t_far)]
+        every = inside.numel() == count
+        rays = (origins, directions, t_near, t_far) if every else [
+            t.index_select(0, inside) for t in (origins, directions, t_near, t_far)]
         background = torch.as_tensor(march["background"], dtype=origins.dtype, device=origins.device)
-        if background.dim() == 2:  # a colour a ray (training's random backgrounds)
+        if not every and background.dim() == 2:  # a colour a ray (training's random backgrounds)
             march = {**march, "background": background.index_select(0, inside)}
-        ray_colour = self.field.ray_colour(picked[1], colour_network_dtype(origins.device))
-        out = render_marched_compiled(*picked, density=density, ray_colour=ray_colour, library=library, **march)
-        rgb = background.to(out.rgb.dtype).expand(origins.shape[0], 3).clone()
+        ray_colour = self.field.ray_colour(rays[1], colour_network_dtype(origins.device))
+        out = render_marched_compiled(*rays, density=density, ray_colour=ray_colour, library=library, **march)
+        if every:
+            return out
+        rgb = background.to(out.rgb.dtype).expand(count, 3).clone()
         rgb[inside] = out.rgb
-        depth, opacity = out.depth.new_zeros(origins.shape[0]), out.opacity.new_zeros(origins.shape[0])
+        depth, opacity = out.depth.new_zeros(count), out.opacity.new_zeros(count)
         depth[inside], opacity[inside] = out.depth, out.opacity
         return RenderOutput(rgb=rgb, depth=depth, opacity=opacity, weights=None, t_edges=None)
 
