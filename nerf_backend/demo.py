@@ -61,7 +61,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--samples", type=int, default=32, help="Cycles samples per pixel")
     # auto: measured best at equal time by `python -m nerf_backend bench out/demo/dataset
     # --presets preview,fast,auto --budget-seconds 120` on 2 CPU cores (test PSNR after 120 s:
-    # auto 36.05 dB, fast 35.22 dB, preview 26.17 dB; docs/bench_demo_100px.md).
+    # auto 36.05 dB, fast 35.22 dB, preview 26.17 dB; docs/benchmarks/bench_demo_100px.md).
     parser.add_argument("--preset", default="auto")
     # An iteration count, not a time budget: the figure the demo prints is then the same on a
     # busy machine and a quiet one (a budget in seconds trains less under load).

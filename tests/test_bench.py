@@ -26,9 +26,10 @@ from nerf_backend.bench.plain_nerf import PlainMLP, fourier_features
 
 def test_short_bench_writes_json_table_and_plot(tiny_demo_dataset, tmp_path):
     out = tmp_path / "bench"
+    page = tmp_path / "pages" / "bench_demo_40px.md"
     result = run_python("-m", "nerf_backend", "bench", str(tiny_demo_dataset), "--presets",
                         "fast,auto,slim=preview+field.width=32", "--iters", "6", "--points", "2,6",
-                        "--curve-views", "2", "--out", str(out))
+                        "--curve-views", "2", "--out", str(out), "--page", str(page))
     report = json.loads((out / "bench.json").read_text())
     assert [v["name"] for v in report["variants"]] == ["fast", "auto", "slim"]
     for variant in report["variants"]:
@@ -59,7 +60,7 @@ def test_short_bench_writes_json_table_and_plot(tiny_demo_dataset, tmp_path):
     assert table.count("\n| ") == 1 + 1 + 3  # header, rule, one row a variant
     # The command as typed and the commit that made the figures, in the JSON and the table.
     command = (f"python -m nerf_backend bench {tiny_demo_dataset} --presets fast,auto,slim=preview+field.width=32 "
-               f"--iters 6 --points 2,6 --curve-views 2 --out {out}")
+               f"--iters 6 --points 2,6 --curve-views 2 --out {out} --page {page}")
     assert report["provenance"]["command"] == command
     commit = report["provenance"]["commit"]
     assert commit is None or re.fullmatch(r"[0-9a-f]{7,}(\+changes)?", commit), commit
@@ -71,6 +72,11 @@ def test_short_bench_writes_json_table_and_plot(tiny_demo_dataset, tmp_path):
     with Image.open(out / "bench.png") as plot:
         assert plot.size[0] > 400 and plot.size[1] > 300
     assert "bench.json" in result.stdout
+    # --page: the table as a docs page, its plot beside it, and the folder's index listing it.
+    assert page.read_text() == table.rstrip("\n") + "\n\n![bench_demo_40px](bench_demo_40px.png)\n"
+    assert (page.with_suffix(".png")).read_bytes() == (out / "bench.png").read_bytes()
+    index = (page.parent / "README.md").read_text()
+    assert "| [bench_demo_40px](bench_demo_40px.md) | " in index and f"`{command}`" in index
 
 
 def test_bench_at_several_budgets_trains_each_from_scratch_and_writes_the_trade(tiny_demo_dataset, tmp_path):
@@ -206,9 +212,14 @@ def test_the_random_line_rate_is_the_faster_of_pytorch_and_the_compiled_loop(mon
 def test_bench_step_profiles_a_marched_preset_by_stage(tiny_demo_dataset, tmp_path):
     """A marched preset's step and rendered view split by stage, against measured rates."""
     out = tmp_path / "profile"
+    page = tmp_path / "pages" / "step_profile_demo_40px.md"
     result = run_python("-m", "nerf_backend", "bench-step", str(tiny_demo_dataset), "--preset", "auto",
-                        "--warmup-seconds", "4", "--steps", "6", "--out", str(out))
+                        "--warmup-seconds", "4", "--steps", "6", "--out", str(out), "--page", str(page))
     report = json.loads((out / "step_profile.json").read_text())
+    # Its page says the command and the commit the table itself does not.
+    assert page.read_text().startswith((out / "step_profile.md").read_text().rstrip("\n"))
+    assert f"Made by `python -m nerf_backend bench-step {tiny_demo_dataset} --preset auto" in page.read_text()
+    assert "step_profile_demo_40px.md" in (page.parent / "README.md").read_text()
     hardware = report["hardware"]
     assert hardware["gflops"] > 1 and hardware["bandwidth_gb_s"] > 0.5 and hardware["lines_m_s"] > 1
     training = report["training"]

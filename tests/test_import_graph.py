@@ -132,6 +132,7 @@ LAYERS = {
         ("fields",),
         ("models",),
         ("configs",),
+        ("planning",),  # a run planned in one pass: facts, rules, the frozen plan
         ("evaluation",),
         ("asset",),  # export: a trained surface baked into a glTF asset
         ("training",),

@@ -51,7 +51,7 @@ def test_paper_preset_trains_on_a_real_dataset(tiny_demo_dataset, tmp_path):
     events = [json.loads(line) for line in (run / "events.jsonl").read_text().splitlines()]
     assert [e for e in events if e["event"] == "train"][0]["loss"] > 0
     config = json.loads((run / "config.json").read_text())
-    assert config["decisions"]["ray_bounds"] == {"kind": "protocol", "near": 2.0, "far": 6.0,
+    assert config["decisions"]["ray_bounds"] == {"value": {"kind": "protocol", "near": 2.0, "far": 6.0},
                                                  "reason": "the protocol's near 2, far 6 (as the reference loaders)"}
 
 

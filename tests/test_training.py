@@ -58,7 +58,7 @@ def test_event_log_is_machine_readable(trained_run):
     assert any(e["event"] == "val" and np.isfinite(e["psnr"]) for e in events)
     assert (trained_run / "preview.png").is_file()
     config = json.loads((trained_run / "config.json").read_text())
-    assert config["preset"] == "preview" and config["decisions"]["ray_bounds"]["kind"] == "scene_box"
+    assert config["preset"] == "preview" and config["decisions"]["ray_bounds"]["value"]["kind"] == "scene_box"
 
 
 def test_resume_continues_exactly_where_an_uninterrupted_run_would_be(tiny_demo_dataset, tmp_path):
@@ -140,9 +140,10 @@ def test_a_dataset_from_another_tool_loads_with_the_reference_intrinsics(tiny_de
     run = tmp_path / "run"
     run_python("-m", "nerf_backend", "train", str(foreign), "--preset", "preview", "--out", str(run),
                "--iters", "3", "--no-progress")
-    bounds = json.loads((run / "config.json").read_text())["decisions"]["ray_bounds"]
+    decision = json.loads((run / "config.json").read_text())["decisions"]["ray_bounds"]
+    bounds = decision["value"]
     assert bounds["kind"] == "scene_box" and bounds["box_min"] == [-1.5] * 3 and bounds["box_max"] == [1.5] * 3
-    assert "no scene_profile.json" in bounds["reason"]
+    assert "no scene_profile.json" in decision["reason"]
 
 
 def test_bad_dataset_gives_one_clear_line(tmp_path):

@@ -10,7 +10,7 @@ from nerf_contract.commands import BackendFlag
 
 from ..bench import DEFAULT_PRESETS, Variant, ablation_variants, run_bench, run_suite, run_trade
 from ..core.errors import NerfError
-from .arguments import add_device, add_seed, positive_float, positive_int
+from .arguments import add_device, add_page, add_seed, positive_float, positive_int, publish
 
 NAME = "bench"
 HELP = "measure the speed/accuracy trade of presets on one dataset, or on every dataset of a suite (--suite)"
@@ -54,6 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(BackendFlag.OUT, type=Path, required=True,
                         help="the bench folder (bench.json, bench.md, bench.png, runs/)")
     parser.add_argument(BackendFlag.OVERWRITE, action="store_true", help="bench again into an existing folder")
+    add_page(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -78,4 +79,5 @@ def run(args: argparse.Namespace) -> int:
         name, also = "bench", ""
     print((args.out / f"{name}.md").read_text(), end="")
     print(f"written {args.out / f'{name}.json'}, {args.out / f'{name}.md'}, {args.out / f'{name}.png'}{also}")
+    publish(args, args.out / f"{name}.md", args.out / f"{name}.png")
     return 0

@@ -11,7 +11,7 @@ from nerf_contract.commands import BackendFlag
 
 from ..bench.kilonerf import kilonerf_trade
 from ..core.devices import resolve_device
-from .arguments import add_device, positive_float, positive_int
+from .arguments import add_device, add_page, positive_float, positive_int, publish
 
 NAME = "bench-kilonerf"
 HELP = "KiloNeRF against the product's renderer: the run distilled into tiny networks, PSNR and time a frame"
@@ -32,10 +32,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--views", type=positive_int, default=3, help="test views scored (the dataset's first)")
     add_device(parser)
     parser.add_argument(BackendFlag.OUT, type=Path, required=True, help="folder for the figures (JSON and Markdown)")
+    add_page(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     kilonerf_trade(args.run, args.out, args.seconds, cells=args.cells, views=args.views,
                    device=str(resolve_device(args.device)))
     print((args.out / "kilonerf.md").read_text(), end="")
+    publish(args, args.out / "kilonerf.md")
     return 0

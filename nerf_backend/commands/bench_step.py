@@ -14,7 +14,7 @@ from ..configs.presets import preset_config
 from ..core.errors import NerfError
 from ..models.marched import MarchedModel
 from ..models.registry import model_class
-from .arguments import add_device, add_seed, positive_float, positive_int
+from .arguments import add_device, add_page, add_seed, positive_float, positive_int, publish
 
 NAME = "bench-step"
 HELP = ("a NeRF preset's seconds per iteration against a plain PyTorch implementation of the same maths; a "
@@ -35,6 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_seed(parser)
     parser.add_argument(BackendFlag.OUT, type=Path, required=True, help="folder for the timings (JSON and Markdown)")
     parser.add_argument(BackendFlag.OVERWRITE, action="store_true", help="replace an existing output folder")
+    add_page(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -42,6 +43,8 @@ def run(args: argparse.Namespace) -> int:
         return _profile_marched(args)
     if args.overrides:
         raise NerfError("bench-step: --set applies to marched presets; a NeRF preset is measured as it is")
+    if args.page is not None:
+        raise NerfError("bench-step --page: a marched preset's profile is a page; a NeRF preset's timing is not")
     report = step_cost(args.dataset, args.preset, args.steps or 3, args.out, seed=args.seed, rays=args.rays,
                        overwrite=args.overwrite)
     per = report["seconds_per_iteration"]
@@ -58,5 +61,6 @@ def _profile_marched(args: argparse.Namespace) -> int:
                          warmup_seconds=args.warmup_seconds, overrides=overrides, device_name=args.device,
                          overwrite=args.overwrite)
     print((args.out / "step_profile.md").read_text(), end="")
+    publish(args, args.out / "step_profile.md")
     print(f"written {args.out / 'step_profile.json'}, {args.out / 'step_profile.md'}")
     return 0

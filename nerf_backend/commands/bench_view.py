@@ -12,7 +12,7 @@ from nerf_contract.commands import BackendFlag
 from ..bench.view_speed import view_speed
 from ..core.devices import resolve_device
 from ..core.errors import NerfError
-from .arguments import add_device, positive_float, positive_int
+from .arguments import add_device, add_page, positive_float, positive_int, publish
 
 NAME = "bench-view"
 HELP = "how fast the live view answers: the render server's start, frames a second while orbiting, the whole frame"
@@ -30,6 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "add-on trains)")
     add_device(parser)
     parser.add_argument(BackendFlag.OUT, type=Path, required=True, help="folder for the timings (JSON and Markdown)")
+    add_page(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -38,4 +39,5 @@ def run(args: argparse.Namespace) -> int:
     view_speed(args.run, args.out, size=args.size, fraction=args.fraction, frames=args.frames,
                device=str(resolve_device(args.device)), beside_training=args.beside_training)
     print((args.out / "view_speed.md").read_text(), end="")
+    publish(args, args.out / "view_speed.md")
     return 0

@@ -114,6 +114,26 @@ class TrainConfig:
             groups[name] = changes.pop(name)
         return dataclasses.replace(self, groups=tuple(groups.items()), **changes)
 
+    def setting(self, key: str) -> Any:
+        """The value of a dotted setting (``grid.resolution``, ``model``)."""
+        value = self
+        for part in key.split("."):
+            value = getattr(value, part)
+        return value
+
+    def with_setting(self, key: str, value: Any) -> "TrainConfig":
+        """This config with the dotted setting ``key`` set to ``value``.
+
+        Example:
+            >>> config = TrainConfig(preset="x").with_setting("rays_per_batch", 512)
+            >>> config.rays_per_batch, config.with_setting("grid.resolution", 96).setting("grid.resolution")
+            (512, 96)
+        """
+        group, _, name = key.partition(".")
+        if not name:
+            return self.with_settings(**{group: value})
+        return self.with_settings(**{group: dataclasses.replace(getattr(self, group), **{name: value})})
+
     def learning_rate_decay(self, step: int) -> float:
         """The factor every learning rate is multiplied by at ``step`` (1 at the start)."""
         if self.learning_rate <= 0:  # a frozen model (learning_rate 0) has nothing to decay

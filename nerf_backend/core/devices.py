@@ -11,22 +11,44 @@ import torch
 from .errors import NerfError
 
 
-def resolve_device(name: str) -> torch.device:
-    """``auto`` picks the fastest present; naming an absent device is an error, not a
-    silent fallback, so a user never trains on the CPU believing it is the GPU."""
+# The devices a run may name, fastest first (``auto`` takes the first present).
+DEVICES = ("cuda", "mps", "cpu")
+
+
+def present_devices() -> tuple[str, ...]:
+    """The devices this torch build can use here, fastest first (the CPU always)."""
+    mps = getattr(torch.backends, "mps", None)
+    return tuple(name for name, present in (("cuda", torch.cuda.is_available()),
+                                            ("mps", mps is not None and mps.is_available()), ("cpu", True))
+                 if present)
+
+
+def choose_device(name: str, present: tuple[str, ...]) -> tuple[torch.device, str]:
+    """The device ``name`` asks for among ``present`` (``present_devices``'s), and why.
+    ``auto`` picks the fastest present; naming an absent device is an error, not a silent
+    fallback, so a user never trains on the CPU believing it is the GPU.
+
+    Example:
+        >>> choose_device("auto", ("cpu",))
+        (device(type='cpu'), 'auto: no GPU (CUDA or MPS) is present, so the CPU')
+        >>> choose_device("auto", ("cuda", "cpu"))[0]
+        device(type='cuda')
+    """
     if name == "auto":
-        if torch.cuda.is_available():
-            return torch.device("cuda")
-        if getattr(torch.backends, "mps", None) is not None and torch.backends.mps.is_available():
-            return torch.device("mps")
-        return torch.device("cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise NerfError("--device cuda: this torch build sees no CUDA device")
-    if name == "mps" and not (getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
-        raise NerfError("--device mps: Apple's Metal (MPS) is not available here")
-    if name not in ("cpu", "cuda", "mps"):
+        chosen = present[0]
+        return torch.device(chosen), (f"auto: the fastest device present ({', '.join(present)})" if chosen != "cpu"
+                                      else "auto: no GPU (CUDA or MPS) is present, so the CPU")
+    if name not in DEVICES:
         raise NerfError(f"--device {name}: choose auto, cpu, cuda or mps")
-    return torch.device(name)
+    if name not in present:
+        raise NerfError("--device cuda: this torch build sees no CUDA device" if name == "cuda"
+                        else "--device mps: Apple's Metal (MPS) is not available here")
+    return torch.device(name), f"asked for with --device {name}"
+
+
+def resolve_device(name: str) -> torch.device:
+    """``choose_device`` among the devices present here."""
+    return choose_device(name, present_devices())[0]
 
 
 def synchronise(device: torch.device) -> None:

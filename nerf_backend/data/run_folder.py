@@ -7,13 +7,16 @@ too), and so are its events (``nerf_contract.training_events``).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import io
 import json
 import os
 import pickle
+import shutil
 import time
 from pathlib import Path
+from typing import Iterator
 
 import torch
 
@@ -97,6 +100,34 @@ class RunFolder:
                            f"data, and loading them could run code (this project's checkpoints hold data only)") from None
         except Exception as exc:  # torch raises several types for damaged files
             raise RunError(f"{self.checkpoint_path}: cannot read checkpoint ({_first_line(exc)})") from None
+
+    def existing_files(self) -> list[Path]:
+        """What the folder holds besides its lock."""
+        return [p for p in self.path.iterdir() if p.name != LOCK_NAME] if self.path.is_dir() else []
+
+    def refuse_to_replace(self, resume: bool, overwrite: bool, holding_lock: bool = False) -> None:
+        """A non-empty folder is reused only when resuming or told to overwrite."""
+        if not resume and not overwrite and self.existing_files():
+            if not holding_lock and self.in_use():  # the probe would see our own lock
+                raise RunError(f"{self.path}: {IN_USE}")
+            raise RunError(f"{self.path}: run folder exists and is not empty; pass --resume to continue it or "
+                           f"--overwrite to replace it")
+
+    @contextlib.contextmanager
+    def claimed(self, resume: bool, overwrite: bool) -> Iterator["RunFolder"]:
+        """The folder locked for one training: checked again under the lock, emptied for a new
+        run (a resumed one must hold a run's config), released on leaving."""
+        self.acquire_lock()
+        try:
+            self.refuse_to_replace(resume, overwrite, holding_lock=True)
+            if resume:
+                self.read_config()  # raises a clear error if this is not a run
+            else:
+                for path in self.existing_files():
+                    shutil.rmtree(path) if path.is_dir() else path.unlink()
+            yield self
+        finally:
+            self.release_lock()
 
     def acquire_lock(self) -> None:
         """Hold an exclusive OS lock on RUN/.lock for the life of this process; a second

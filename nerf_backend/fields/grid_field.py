@@ -38,7 +38,7 @@ class GridFieldConfig:
     upsample_iterations: tuple[int, ...] = ()
     # Under a time budget, the last growth (to `resolution`) waits for a run that can still take
     # this many steps at its rate so far: a finer grid needs steps to fill in, and with fewer the
-    # grid stays one growth coarser (auto's rule, training/auto.py). 0: it always grows.
+    # grid stays one growth coarser (auto's rule, planning/rules.py). 0: it always grows.
     last_growth_min_steps: int = 0
     # Once the box is fitted to the scene (MarchedModel.fit_box), cells keep the count the
     # schedule gives over the box the field was built over, so they shrink with the box, but

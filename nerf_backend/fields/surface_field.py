@@ -70,7 +70,7 @@ class SurfaceFieldConfig:
     # density outside the surface piles up along rays that graze it, so its silhouettes lie
     # outside the zero level and training pulls the surface inward (A.blend at 800×800: a cell
     # inside the truth); NeuS's transmittance halves exactly at the zero level. The surface
-    # preset chooses NeuS where Blender's prior bounds the surface (training/surface_opacity.py).
+    # preset chooses NeuS where Blender's prior bounds the surface (planning/rules.py, surface_opacity).
     opacity: str = "volsdf"
     # Keep the distance within the bounds Blender's occupancy prior gives (surface_band.py:
     # the surface lies in the prior's surface cells less their margin), by projection after
