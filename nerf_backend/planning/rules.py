@@ -133,7 +133,13 @@ def budget(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
 
 
 def train_views(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
-    """Every training view, or the first ``max_train_views`` (the paper's view ablation)."""
+    """Every training view, or the first ``max_train_views`` (the paper's view ablation).
+
+    Example:
+        >>> facts, plan = _example()
+        >>> next(train_views(facts, plan)).value
+        4
+    """
     views, asked = len(facts.train_split), plan.config.max_train_views
     if asked is not None and asked < views:
         yield Proposal("train_views", "train_views", asked, f"max_train_views: the first {asked} of {views} views")
@@ -181,7 +187,13 @@ def occupancy_prior(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
 
 def coarse_images(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
     """Coarse-to-fine images (``coarse_images``): a full-size pixel's footprint on the scene,
-    which each downsampled level is measured against; None: full-size images throughout."""
+    which each downsampled level is measured against; None: full-size images throughout.
+
+    Example (auto trains on full-size images from the first step):
+        >>> facts, plan = _example(before=coarse_images)
+        >>> next(coarse_images(facts, plan)).value is None
+        True
+    """
     box = plan.ray_bounds.box
     if plan.config.coarse_images and box is not None:
         footprint = pixel_footprint(_views(facts, plan), box)
@@ -193,7 +205,13 @@ def coarse_images(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
 
 # --- auto ----------------------------------------------------------------------------------
 def auto_model(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
-    """auto's model: the factorised grids, measured against the others at equal time."""
+    """auto's model: the factorised grids, measured against the others at equal time.
+
+    Example:
+        >>> facts, plan = _example()
+        >>> next(auto_model(facts, plan)).value
+        'grid'
+    """
     if _auto(facts, plan):
         yield Proposal("model", "model", AUTO_MODEL, AUTO_MODEL_REASON)
 
@@ -261,7 +279,13 @@ def auto_grid_resolution(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
 
 def auto_growth(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
     """The grid grows from the preset's start to its final resolution on the preset's
-    schedule; under a time budget, the last growth waits for steps enough to fill it in."""
+    schedule; under a time budget, the last growth waits for steps enough to fill it in.
+
+    Example (48 vertices to the example's 114, at the preset's scheduled steps):
+        >>> facts, plan = _example(before=auto_growth)
+        >>> [p.value for p in auto_growth(facts, plan)]
+        [48, (300, 600, 1000), 1500]
+    """
     if not _auto(facts, plan):
         return
     grid = plan.config.grid
@@ -297,7 +321,13 @@ def auto_background(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
 
 def auto_occupancy_prior(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
     """Empty space: where the dataset carries Blender's geometry as an occupancy prior, the
-    occupancy grid starts from it and never marks what it leaves out."""
+    occupancy grid starts from it and never marks what it leaves out.
+
+    Example:
+        >>> facts, plan = _example(profile={"occupancy_prior": {"file": "occupancy_prior.npz"}})
+        >>> next(auto_occupancy_prior(facts, plan)).value
+        'solid'
+    """
     if not _auto(facts, plan):
         return
     has_prior = facts.profile is not None and isinstance(facts.profile.get("occupancy_prior"), dict)
@@ -334,7 +364,14 @@ def auto_box_fit(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
 
 def auto_samples(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
     """Samples: one march step per grid cell covers the depth range at the grid's detail
-    (recorded; the model derives it)."""
+    (recorded; the model derives it).
+
+    Example (the example's 114-vertex grid, a step a cell, along the box's diagonal):
+        >>> facts, plan = _example(before=auto_samples)
+        >>> proposal = next(auto_samples(facts, plan))
+        >>> proposal.key, proposal.value
+        (None, 165)
+    """
     if not _auto(facts, plan):
         return
     box, config = plan.ray_bounds.box, plan.config
