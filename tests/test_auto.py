@@ -15,7 +15,7 @@ from nerf_backend.data.dataset import DatasetSplit
 from nerf_backend.model_components.ray_bounds import RayBounds
 from nerf_backend.planning.facts import RunFacts, RunRequest, starting_settings
 from nerf_backend.planning.plan import RunPlan, apply_rules
-from nerf_backend.planning.rules import RULES, auto_model, sparse_grid_growth, surface_opacity
+from nerf_backend.planning.rules import RULES, auto_model, sparse_grid_box_fit, surface_opacity
 
 BOX = SceneBounds((-1.0, -1.0, -0.25), (1.0, 1.0, 0.25))
 
@@ -32,7 +32,7 @@ def _split(opaque: bool = False) -> DatasetSplit:
 
 PROFILE = {"view_dependent": False, "occupancy_prior": {"file": "occupancy_prior.npz"}}
 # The rules that shape a new run's preset (those from auto's to the plenoxels grid's).
-SHAPING = RULES[RULES.index(auto_model):RULES.index(sparse_grid_growth) + 1]
+SHAPING = RULES[RULES.index(auto_model):RULES.index(sparse_grid_box_fit) + 1]
 
 
 def _shaped(preset="auto", split=None, box=BOX, profile=PROFILE, overrides=(), budget=None, priors=None,

@@ -451,22 +451,34 @@ def sparse_grid_size(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
 
 
 def sparse_grid_growth(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
-    """The plenoxels grid grows once, from half its final resolution; where the box is a
-    guess (no Blender bounds) it narrows at that growth to what the field fills.
+    """The plenoxels grid grows once, from half its final resolution.
+
+    Example:
+        >>> facts, plan = _example(preset="plenoxels", before=sparse_grid_growth)
+        >>> plan.config.plenoxels.resolution, next(sparse_grid_growth(facts, plan)).value
+        (114, 57)
+    """
+    if not (_new_run(facts) and plan.config.model == "plenoxels"):
+        return
+    yield Proposal("initial_resolution", "plenoxels.initial_resolution",
+                   max(MIN_RESOLUTION, plan.config.plenoxels.resolution // 2),
+                   "half the final resolution (not below 32): one growth, when the coarse grid has found where the "
+                   "scene is")
+
+
+def sparse_grid_box_fit(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
+    """Where the box is a guess (no Blender bounds), the plenoxels grid's box narrows at its
+    growth to what the field fills.
 
     Example (the example's profile has no bounds):
-        >>> facts, plan = _example(preset="plenoxels", before=sparse_grid_growth)
-        >>> plan.config.plenoxels.resolution, [p.value for p in sparse_grid_growth(facts, plan)]
-        (114, [57, 1000])
+        >>> facts, plan = _example(preset="plenoxels", before=sparse_grid_box_fit)
+        >>> next(sparse_grid_box_fit(facts, plan)).value
+        1000
     """
     if not (_new_run(facts) and plan.config.model == "plenoxels"):
         return
     grid = plan.config.plenoxels
-    initial = max(MIN_RESOLUTION, grid.resolution // 2)
-    yield Proposal("initial_resolution", "plenoxels.initial_resolution", initial,
-                   "half the final resolution (not below 32): one growth, when the coarse grid has found where the "
-                   "scene is")
-    grown = grid.resolution > initial and bool(grid.upsample_iterations)
+    grown = grid.resolution > grid.initial_resolution and bool(grid.upsample_iterations)
     guessed = facts.profile is None or facts.profile.get("bounds") is None
     yield Proposal("box_fit", "fit_box_at", grid.upsample_iterations[0] if grown and guessed else 0, (
         "the box is a guess (no scene bounds in the dataset): at the growth it narrows to what the field fills"
@@ -480,7 +492,8 @@ RULES: tuple[Rule, ...] = (
     device, budget, train_views, ray_bounds,
     auto_model, auto_rays, auto_view_dependence, auto_grid_resolution, auto_growth, auto_background,
     auto_occupancy_prior, auto_box_fit, auto_samples,
-    surface_softness, sparse_grid_size, sparse_grid_growth, occupancy_prior, surface_opacity, coarse_images,
+    surface_softness, sparse_grid_size, sparse_grid_growth, sparse_grid_box_fit,
+    occupancy_prior, surface_opacity, coarse_images,
 )
 
 
