@@ -7,6 +7,7 @@ import json
 import os
 import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -53,8 +54,11 @@ def test_eval_scores_another_tools_renders(trained_run, tiny_demo_dataset, tmp_p
 
 
 @pytest.fixture(scope="module")
-def report_page(trained_run, tiny_demo_dataset, tmp_path_factory):
+def report_page(trained_run, tmp_path_factory):
     """A report comparing the trained run with a copy of its renders scored as another tool's."""
+    # The run's own dataset: under pytest-xdist the worker that trained the shared run used its
+    # own copy of the demo dataset, and a report refuses results on different datasets.
+    tiny_demo_dataset = Path(json.loads((trained_run / "config.json").read_text())["dataset"])
     other = tmp_path_factory.mktemp("other") / "renders"
     other.mkdir()
     # --geometry: the run's report gains its Geometry section (the soft preview NeRF needs a threshold).
