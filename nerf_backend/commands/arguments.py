@@ -10,7 +10,7 @@ import torch
 
 from nerf_contract.commands import BackendFlag
 
-from ..bench.pages import publish_page
+from ..bench.pages import INDEX_NAME, publish_page
 from ..metrics.lpips_metric import BACKBONE_FILE
 
 DEVICES = ("auto", "cpu", "cuda", "mps")
@@ -70,4 +70,4 @@ def publish(args: argparse.Namespace, markdown: Path, plot: Path | None = None) 
     """``--page``'s page of the table ``markdown``, where one was asked for."""
     if args.page is not None:
         page = publish_page(markdown, args.page, plot, getattr(args, "command_line", None))
-        print(f"page {page} (index {page.parent / 'README.md'})")
+        print(f"page {page} (index {page.parent / INDEX_NAME})")
