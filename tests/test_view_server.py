@@ -18,12 +18,13 @@ import numpy as np
 import pytest
 import torch
 
-from nerf_backend.core.cameras import Intrinsics, camera_rays, pixel_centres, rays_from_matrices
+from nerf_backend.core.cameras import (Intrinsics, camera_rays, pixel_centres, pixels_seeing_boxes,
+                                       rays_from_matrices)
 from nerf_backend.data.dataset import load_split
 from nerf_backend.data.run_folder import RunFolder
 from nerf_backend.evaluation.inference import load_trained_model
 from nerf_backend.evaluation.render_views import render_image
-from nerf_backend.evaluation.view_server import Frame, FrameWriter
+from nerf_backend.evaluation.view_server import Frame, FrameWriter, LiveModel
 from nerf_contract import commands, view_frames
 
 from conftest import REPO_ROOT, run_python
@@ -121,9 +122,56 @@ def test_an_orthographic_views_rays_are_parallel(test_view):
     assert spread[:, 1].abs().max() == pytest.approx(1.0 * 3 / 4, abs=1e-5)
 
 
-def test_frames_match_the_runs_renderer_with_the_cameras_depth(trained_run, test_view, tmp_path):
+def _boxes_hit(origins, directions, corners):
+    """Whether each ray meets one of the boxes (slab test in float64)."""
+    low, high = corners.double().amin(dim=1), corners.double().amax(dim=1)
+    inverse = 1.0 / torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions).double()
+    t0 = (low[None] - origins.double()[:, None]) * inverse[:, None]
+    t1 = (high[None] - origins.double()[:, None]) * inverse[:, None]
+    near = torch.minimum(t0, t1).amax(dim=-1).clamp_min(0.0)
+    far = torch.maximum(t0, t1).amin(dim=-1)
+    return (far >= near).any(dim=1)
+
+
+@pytest.mark.parametrize("kind", ["perspective", "orthographic"])
+def test_the_pixels_left_out_see_none_of_the_boxes(kind):
+    """``pixels_seeing_boxes`` keeps every pixel whose ray meets a box (checked by a slab test
+    of every pixel's ray, 40 random views of 12 random boxes) and leaves most of the rest out;
+    with a box behind the camera it keeps every pixel (None)."""
+    generator = torch.Generator().manual_seed(3)
+    width, height = 37, 23
+    kept_share = []
+    for _ in range(40):
+        low = torch.rand(12, 3, generator=generator) * 2 - 1
+        high = low + torch.rand(12, 3, generator=generator) * 0.3
+        corners = torch.stack([torch.where(torch.tensor([(c >> a) & 1 for a in range(3)]).bool(), high, low)
+                               for c in range(8)], dim=1)
+        eye = torch.nn.functional.normalize(torch.randn(3, generator=generator), dim=0) * 4
+        pose = torch.eye(4, dtype=torch.float64)
+        back = torch.nn.functional.normalize(eye.double(), dim=0)
+        right = torch.nn.functional.normalize(torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64),
+                                                                 back), dim=0)
+        pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, torch.linalg.cross(back, right), back, eye
+        view = torch.linalg.inv(pose)
+        projection = torch.tensor(orthographic(1.5, 1.0) if kind == "orthographic" else
+                                  perspective(Intrinsics(width, height, 30.0, 30.0, 18.0, 12.0), width, height))
+        origins, directions = rays_from_matrices(view, projection, width, height)
+        hit = _boxes_hit(origins, directions, corners).nonzero().squeeze(1)
+        seen = pixels_seeing_boxes(corners, view, projection, width, height)
+        assert hit.numel() > 0 and set(hit.tolist()) <= set(seen.tolist())
+        kept_share.append((seen.numel() - hit.numel()) / (width * height - hit.numel()))
+    assert np.mean(kept_share) < 0.5, kept_share  # the rectangles and their margin keep some empty pixels
+    behind = corners + torch.tensor(eye.tolist()) * 2  # the boxes moved past the camera
+    assert pixels_seeing_boxes(behind, view, projection, width, height) is None or kind == "orthographic"
+
+
+@pytest.mark.parametrize("run_fixture", ["trained_run", "trained_marched_run"])
+def test_frames_match_the_runs_renderer_with_the_cameras_depth(run_fixture, test_view, tmp_path, request):
     """A served frame is the run's own render of that camera (colour within 1e-3 once composited
-    over white), its alpha the opacity, its depth the camera's z of the expected surface."""
+    over white), its alpha the opacity, its depth the camera's z of the expected surface. The
+    marched model's frame renders only the pixels that see its occupied blocks: the others
+    must be as empty as the whole render has them."""
+    trained_run = request.getfixturevalue(run_fixture)
     intrinsics, pose = test_view
     width, height = intrinsics.width, intrinsics.height
     server = Server(trained_run, tmp_path / "frames")
@@ -149,6 +197,11 @@ def test_frames_match_the_runs_renderer_with_the_cameras_depth(trained_run, test
     assert np.allclose(depth[hit], expected[hit], rtol=1e-3, atol=1e-3)
     assert np.isinf(depth[reference.opacity < 1e-5]).all()
     assert not any(tmp_path.joinpath("frames").iterdir()), "the server leaves no frame file behind"
+    if run_fixture == "trained_marched_run":  # the view leaves pixels out, so the check above meant something
+        live = LiveModel(RunFolder(trained_run), torch.device("cpu"))
+        seen = pixels_seeing_boxes(live.model.content_corners(), torch.linalg.inv(pose.double()) @ live.nerf_to_world,
+                                   torch.tensor(perspective(intrinsics, width, height)), width, height)
+        assert 0 < seen.numel() < 0.9 * width * height
 
 
 def test_a_draft_marches_a_coarser_step_close_to_the_exact_frame(trained_marched_run, tmp_path):

@@ -112,13 +112,15 @@ def ray_box_intersection(
     return t_near, t_far, hit
 
 
-def rays_from_matrices(view: Tensor, projection: Tensor, width: int, height: int) -> tuple[Tensor, Tensor]:
+def rays_from_matrices(view: Tensor, projection: Tensor, width: int, height: int,
+                       pixels: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Origins (on the near clip plane) and unit directions ``[H·W, 3]`` in world space of the
     pixels of a view as a graphics API gives it: ``view`` maps world to camera, ``projection``
     camera to OpenGL's clip space (Blender's ``RegionView3D.view_matrix`` and ``window_matrix``,
-    a camera's ``calc_matrix_camera``). Pixels row-major from the top row, as ``camera_rays``'s.
-    Each pixel's centre is unprojected at the near and the far clip plane, so perspective and
-    orthographic views alike (an orthographic view's rays are parallel).
+    a camera's ``calc_matrix_camera``). Pixels row-major from the top row, as ``camera_rays``'s;
+    with ``pixels`` (their indices in that order), those pixels' rays only. Each pixel's centre
+    is unprojected at the near and the far clip plane, so perspective and orthographic views
+    alike (an orthographic view's rays are parallel).
 
     Example:
         >>> near, far = 0.1, 10.0  # a 90° perspective: the centre pixel looks down -Z
@@ -129,18 +131,68 @@ def rays_from_matrices(view: Tensor, projection: Tensor, width: int, height: int
         ([0.0, 0.0, -0.1], [0.0, 0.0, -1.0])
         >>> [round(v, 4) for v in d[0].tolist()]  # the top-left pixel: up and to the left
         [-0.4851, 0.4851, -0.7276]
+        >>> torch.equal(rays_from_matrices(torch.eye(4), p, 3, 3, torch.tensor([0]))[1], d[:1])
+        True
     """
     inverse = torch.linalg.inv(projection.double() @ view.double())
-    x = (torch.arange(width, dtype=torch.float64) + 0.5) * (2.0 / width) - 1.0
-    y = 1.0 - (torch.arange(height, dtype=torch.float64) + 0.5) * (2.0 / height)
-    # inverse @ (x, y, z, 1) as a sum of the inverse's columns: the clip points are never built.
-    on_plane = (y[:, None, None] * inverse[:, 1] + x[None, :, None] * inverse[:, 0]).reshape(-1, 4)
+    if pixels is None:
+        x = (torch.arange(width, dtype=torch.float64) + 0.5) * (2.0 / width) - 1.0
+        y = 1.0 - (torch.arange(height, dtype=torch.float64) + 0.5) * (2.0 / height)
+        # inverse @ (x, y, z, 1) as a sum of the inverse's columns: the clip points are never built.
+        on_plane = (y[:, None, None] * inverse[:, 1] + x[None, :, None] * inverse[:, 0]).reshape(-1, 4)
+    else:
+        x = ((pixels % width).double() + 0.5) * (2.0 / width) - 1.0
+        y = 1.0 - (torch.div(pixels, width, rounding_mode="floor").double() + 0.5) * (2.0 / height)
+        on_plane = y[:, None] * inverse[:, 1] + x[:, None] * inverse[:, 0]
     ends = []
     for ndc_z in (-1.0, 1.0):
         world = on_plane + (ndc_z * inverse[:, 2] + inverse[:, 3])
         ends.append(world[:, :3] / world[:, 3:])
     directions = torch.nn.functional.normalize(ends[1] - ends[0], dim=-1)
     return ends[0].float().contiguous(), directions.float().contiguous()
+
+
+def pixels_seeing_boxes(corners: Tensor, view: Tensor, projection: Tensor, width: int, height: int) -> Tensor | None:
+    """The pixels (indices row-major from the top row, as ``rays_from_matrices`` takes them)
+    whose centre's ray can meet one of the boxes of ``corners [N, 8, 3]`` (each box's eight
+    corners, in ``view``'s world): those whose centre is inside a box's projected corners'
+    rectangle, and a pixel round it. A ray through a box passes within the convex hull of its corners' projections,
+    so a pixel left out sees none of the boxes. None where some corner is not in front of the
+    camera (its projection would wrap round): every pixel may then see them.
+
+    Example:
+        >>> near, far = 0.1, 10.0  # a 90° perspective down -Z, 8×8 pixels
+        >>> p = torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, -(far + near) / (far - near),
+        ...                   -2 * far * near / (far - near)], [0, 0, -1, 0]])
+        >>> cube = torch.tensor([[x, y, z] for x in (0.5, 1.0) for y in (0.5, 1.0) for z in (-3.0, -2.0)])
+        >>> seen = pixels_seeing_boxes(cube[None], torch.eye(4), p, 8, 8)  # its centre: column 5, row 2
+        >>> sorted({int(i) % 8 for i in seen}), sorted({int(i) // 8 for i in seen})  # right of centre, above
+        ([4, 5, 6], [1, 2, 3])
+    """
+    if corners.shape[0] == 0:
+        return torch.zeros(0, dtype=torch.int64)
+    clip = corners.double().reshape(-1, 3) @ (projection.double() @ view.double())[:, :3].T
+    clip = clip + (projection.double() @ view.double())[:, 3]
+    if not bool((clip[:, 3] > 0).all()):
+        return None
+    ndc = (clip[:, :2] / clip[:, 3:]).reshape(-1, 8, 2)
+    low, high = ndc.amin(dim=1), ndc.amax(dim=1)
+    # Pixel i's centre is at x = (i + 0.5)·2/W - 1; row j's (from the top) at y = 1 - (j + 0.5)·2/H.
+    # The columns and rows whose centres lie in the rectangle, and a pixel more for rounding.
+    first_column = torch.ceil((low[:, 0] + 1) * (width / 2) - 0.5) - 1
+    last_column = torch.floor((high[:, 0] + 1) * (width / 2) - 0.5) + 1
+    first_row = torch.ceil((1 - high[:, 1]) * (height / 2) - 0.5) - 1
+    last_row = torch.floor((1 - low[:, 1]) * (height / 2) - 0.5) + 1
+    seen = (first_column < width) & (last_column >= 0) & (first_row < height) & (last_row >= 0)
+    column_span = [first_column[seen].clamp(0, width - 1).long(), last_column[seen].clamp(0, width - 1).long() + 1]
+    row_span = [first_row[seen].clamp(0, height - 1).long(), last_row[seen].clamp(0, height - 1).long() + 1]
+    # The rectangles' union: +1 and -1 at their corners, summed along both axes.
+    marks = torch.zeros((height + 1, width + 1), dtype=torch.int32)
+    for rows, columns, sign in ((row_span[0], column_span[0], 1), (row_span[0], column_span[1], -1),
+                                (row_span[1], column_span[0], -1), (row_span[1], column_span[1], 1)):
+        marks.index_put_((rows, columns), torch.full_like(rows, sign, dtype=torch.int32), accumulate=True)
+    covered = marks.cumsum(0).cumsum(1)[:height, :width] > 0
+    return covered.reshape(-1).nonzero().squeeze(1)
 
 
 def camera_z_along_rays(view: Tensor, origins: Tensor, directions: Tensor, distance: Tensor) -> Tensor:

@@ -25,7 +25,7 @@ import torch
 
 from nerf_contract import view_frames as contract
 
-from ..core.cameras import camera_z_along_rays, rays_from_matrices
+from ..core.cameras import camera_z_along_rays, pixels_seeing_boxes, rays_from_matrices
 from ..core.errors import NerfError
 from ..core.world_frame import world_to_nerf_matrix
 from ..data.dataset import load_scene_profile
@@ -188,19 +188,34 @@ class LiveModel:
         width, height = request["width"], request["height"]
         # The camera's view of the NeRF's own frame: the rays come out where the model marches.
         nerf_view = request["view"] @ request.get("nerf_to_world", self.nerf_to_world)
-        origins, directions = rays_from_matrices(nerf_view, request["projection"], width, height)
+        corners = self.model.content_corners()
+        # Only the pixels that can see the model's content are rendered; the rest are empty.
+        pixels = None if corners is None else pixels_seeing_boxes(corners.cpu(), nerf_view, request["projection"],
+                                                                   width, height)
+        origins, directions = rays_from_matrices(nerf_view, request["projection"], width, height, pixels)
 
         def rays(begin: int, end: int) -> tuple[torch.Tensor, torch.Tensor]:
             return origins[begin:end].to(self.device), directions[begin:end].to(self.device)
 
         with self.model.march_step_scaled(request.get("step_scale", 1.0)):
-            rgb, depth, opacity = render_rays(self.model, rays, width * height, self.ray_bounds, background=0.0)
+            rgb, depth, opacity = render_rays(self.model, rays, origins.shape[0], self.ray_bounds, background=0.0)
         hit = opacity > EMPTY_OPACITY
         distance = torch.from_numpy(depth / np.maximum(opacity, EMPTY_OPACITY))
         z = np.where(hit, camera_z_along_rays(nerf_view, origins, directions, distance).numpy(), np.inf)
-        rgba = np.concatenate([rgb, opacity[:, None]], axis=1).reshape(height, width, 4)[::-1]
+        rgba = np.concatenate([rgb, opacity[:, None]], axis=1)
+        if pixels is not None:
+            rgba, z = _scattered(rgba, pixels.numpy(), width * height, 0.0), _scattered(z, pixels.numpy(),
+                                                                                       width * height, np.inf)
+        rgba = rgba.reshape(height, width, 4)[::-1]
         z = z.astype(np.float32).reshape(height, width)[::-1]
         return Frame(np.ascontiguousarray(rgba), np.ascontiguousarray(z), time.perf_counter() - start)
+
+
+def _scattered(values: np.ndarray, at: np.ndarray, count: int, fill: float) -> np.ndarray:
+    """``values`` (rows) at rows ``at`` of ``count`` rows, ``fill`` elsewhere."""
+    whole = np.full((count, *values.shape[1:]), fill, np.float32)
+    whole[at] = values
+    return whole
 
 
 class FrameWriter:

@@ -118,6 +118,27 @@ class OccupancyGrid(nn.Module):
             return cells.view(count[0], block, count[1], block, count[2], block).any(dim=5).any(dim=3).any(dim=1)
         return self._derived(f"blocks {block}", build)
 
+    def occupied_block_corners(self, block: int) -> Tensor:
+        """The eight corners ``[N, 8, 3]`` of each cube of ``block`` cells a side that holds an
+        occupied cell (``occupied_blocks``), in the grid's frame: nothing outside them is
+        marched. Cached until ``occupied`` changes.
+
+        Example:
+            >>> grid = OccupancyGrid(torch.zeros(3), torch.ones(3), cells=10)
+            >>> _ = grid.occupied.zero_()
+            >>> grid.occupied[9, 0, 5] = True
+            >>> corners = grid.occupied_block_corners(4)
+            >>> corners.amin(dim=1).mul(10).round().tolist(), corners.amax(dim=1).mul(10).round().tolist()
+            ([[8.0, 0.0, 4.0]], [[10.0, 4.0, 8.0]])
+        """
+        def build() -> Tensor:
+            side = (self.box_max - self.box_min) / self._cells_tensor * block
+            low = self.box_min + self.occupied_blocks(block).nonzero().to(side.dtype) * side
+            high = torch.minimum(low + side, self.box_max)
+            pick = torch.tensor([[(c >> axis) & 1 for axis in range(3)] for c in range(8)], device=low.device).bool()
+            return torch.where(pick, high[:, None], low[:, None])
+        return self._derived(f"block corners {block}", build)
+
     def occupied_bricks(self) -> Tensor:
         """``occupied`` as ``brick_bits`` lays it out (8³ cells a cache line), for the compiled
         marches. Cached until ``occupied`` changes."""

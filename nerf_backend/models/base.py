@@ -124,6 +124,12 @@ class Model(nn.Module):
         march a fixed step (the NeRF MLP's stratified samples) renders as it always does."""
         yield
 
+    def content_corners(self) -> Tensor | None:
+        """The eight corners ``[N, 8, 3]`` (the model's frame) of boxes outside which rendering
+        finds nothing: a ray that meets none of them renders as the background. None where the
+        model does not know (every ray is rendered)."""
+        return None
+
     def match_state(self, state: dict[str, Tensor]) -> None:
         """Take the shapes the checkpoint ``state`` was saved with, so its tensors load."""
 

@@ -59,6 +59,9 @@ FIT_MAX_KEPT = 0.75
 # A fitted box is fitted again after each later growth, where that keeps at most this share of
 # it: the finer grid's occupancy bounds the scene closer (and an older field has fewer floaters).
 REFIT_MAX_KEPT = 0.9
+# Cells a side of the blocks content_corners gives: lego's 10-minute model at 800×800, blocks of
+# 8 left 43-50 % of its views' pixels to render, blocks of 16 48-57 % (it covers 30-36 %).
+CONTENT_BLOCK = 8
 
 
 class MarchedModel(Model):
@@ -158,6 +161,11 @@ class MarchedModel(Model):
             # A tuple, not a module attribute: a derived grid is no part of the checkpoint.
             cached = self._render_cache = (key, grid)
         return cached[1]
+
+    def content_corners(self) -> Tensor:
+        """The rendering grid's occupied blocks of ``CONTENT_BLOCK`` cells a side: the march
+        reads density only in occupied cells."""
+        return self.render_occupancy().occupied_block_corners(CONTENT_BLOCK)
 
     @contextmanager
     def march_step_scaled(self, scale: float) -> Iterator[None]:
