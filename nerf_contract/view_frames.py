@@ -18,7 +18,8 @@ renders the views the add-on asks for.
   file holds goes into a new file, which the event names.
 - **Drafts**: a request may ask for a march step ``step_scale`` times the model's own
   (``DRAFT_STEP_SCALE``: the add-on's frames while the view moves and its first whole frame
-  once it rests, before the exact one); a model that does not march a fixed step ignores it.
+  once it rests, before the exact one), and a draft's rays stop sooner (once 99 % of their
+  light is taken); a model that does not march a fixed step ignores it.
 
 A frame is RGBA, float32, colour premultiplied by alpha (alpha is the NeRF's opacity), then
 depth, float32: the camera's z (distance along the view axis, in Blender units, not the ray's

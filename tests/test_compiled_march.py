@@ -18,7 +18,8 @@ from nerf_backend.core.cameras import ray_box_intersection
 from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.kernels import build
 from nerf_backend.model_components import compiled_march
-from nerf_backend.model_components.marcher import OPAQUE_TRANSMITTANCE, SKIPPED_WEIGHT, render_marched_stopping_early
+from nerf_backend.model_components.marcher import (DRAFT_STOP, EXACT_STOP, OPAQUE_TRANSMITTANCE, SKIPPED_WEIGHT,
+                                                   render_marched_stopping_early)
 from nerf_backend.models.registry import build_model
 
 BOX = SceneBounds((-1.0, -1.2, -0.8), (1.0, 1.2, 0.8))  # not a cube: the axes must not be swapped
@@ -72,7 +73,8 @@ def _both(model, rays, library):
     directions = rays[1]
     with torch.no_grad():
         compiled = model(*rays)[0]
-        march = dict(occupancy=model.render_occupancy(), step=model.step, steps=model.samples_per_ray, background=1.0)
+        march = dict(occupancy=model.render_occupancy(), step=model.step, steps=model.samples_per_ray, background=1.0,
+                     stop=model.ray_stop)
         reference = render_marched_stopping_early(
             *rays, density_fn=model._frozen_density,
             ray_colour=lambda x, ray: model.field.colour(x, directions.index_select(0, ray)), **march)
@@ -97,6 +99,25 @@ def test_the_compiled_march_renders_pytorchs_image(preset, spread, surface, libr
     far = float(_rays(1, seed=4)[3].max()) + 8.0
     assert (compiled.depth - reference.depth).abs().max() < 2 * OPAQUE_TRANSMITTANCE * far + 1e-4
     assert (compiled.rgb - reference.rgb).abs().mean() < 1e-4
+
+
+def test_a_draft_stops_its_rays_sooner_in_both_marches(library):
+    """Inside ``march_step_scaled(2)`` (the live view's drafts) a ray stops once 99 % of its
+    light is taken (``DRAFT_STOP``), in the compiled march and PyTorch's alike: the two images
+    agree within the draft stop's bounds, opaque rays keep up to 1e-2 of their light (some more
+    than the exact stop's 1e-4), and the exact stop is back after the block."""
+    model = _model("fast", seed=3, spread=1.4)
+    rays = _rays(3000, seed=4)
+    with model.march_step_scaled(2.0):
+        assert model.ray_stop == DRAFT_STOP
+        compiled, reference = _both(model, rays, library)
+    assert model.ray_stop == EXACT_STOP
+    bound = 2 * DRAFT_STOP.opaque_transmittance + 2 * DRAFT_STOP.skipped_weight + 1e-5
+    assert (compiled.rgb - reference.rgb).abs().max() < bound
+    assert (compiled.opacity - reference.opacity).abs().max() < 2 * DRAFT_STOP.opaque_transmittance + 1e-5
+    stopped = compiled.opacity > 1 - DRAFT_STOP.opaque_transmittance
+    assert stopped.sum() > 100
+    assert (compiled.opacity[stopped] < 1 - EXACT_STOP.opaque_transmittance).sum() > 10
 
 
 def test_a_translucent_field_overflows_the_sample_buffer_and_is_marched_again(library, monkeypatch):

@@ -38,7 +38,7 @@ from torch import Tensor
 from ..core.field_functions import RayColourFn
 from ..core.stage_timer import count, stage
 from ..kernels.build import kernel_or_note, load_kernel
-from .marcher import OPAQUE_TRANSMITTANCE, SKIPPED_WEIGHT
+from .marcher import EXACT_STOP, OPAQUE_TRANSMITTANCE, RayStop
 from .occupancy import OccupancyGrid
 from .render_output import RenderOutput
 
@@ -100,12 +100,13 @@ def _pointer(tensor: Tensor) -> ctypes.c_void_p:
 def render_marched_compiled(
     origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, *, density: VolumeDensity,
     ray_colour: RayColourFn, occupancy: OccupancyGrid, step: float, steps: int, background: Tensor | float,
-    library: ctypes.CDLL,
+    library: ctypes.CDLL, stop: RayStop = EXACT_STOP,
 ) -> RenderOutput:
     """``render_marched_stopping_early``'s image, each ray marched by the compiled kernel: the
     skip grid's spans, then fine steps in occupied cells, the density read from
-    ``density.volume``, a ray stopped once its transmittance is under ``OPAQUE_TRANSMITTANCE``,
-    and up to ``SKIPPED_WEIGHT`` of its faintest weight left to its mean colour."""
+    ``density.volume``, a ray stopped once its transmittance is under
+    ``stop.opaque_transmittance``, and up to ``stop.skipped_weight`` of its faintest weight
+    left to its mean colour."""
     rays = origins.shape[0]
     as_float = {"dtype": torch.float32}
     origins, directions = origins.to(**as_float).contiguous(), directions.to(**as_float).contiguous()
@@ -118,7 +119,7 @@ def render_marched_compiled(
         box_min=(ctypes.c_float * 3)(*occupancy.box_min.tolist()),
         box_max=(ctypes.c_float * 3)(*occupancy.box_max.tolist()),
         activation=ACTIVATIONS[density.activation], a=density.scale, b=density.shift,
-        opaque_transmittance=OPAQUE_TRANSMITTANCE, skipped_weight=SKIPPED_WEIGHT)
+        opaque_transmittance=stop.opaque_transmittance, skipped_weight=stop.skipped_weight)
     per_ray = torch.zeros((4, rays), **as_float)  # transmittance, depth, skipped, coloured weight
     done = torch.zeros(rays, dtype=torch.uint8)
     counters = torch.zeros(2, dtype=torch.int64)
