@@ -156,9 +156,10 @@ def pixels_seeing_boxes(corners: Tensor, view: Tensor, projection: Tensor, width
     """The pixels (indices row-major from the top row, as ``rays_from_matrices`` takes them)
     whose centre's ray can meet one of the boxes of ``corners [N, 8, 3]`` (each box's eight
     corners, in ``view``'s world): those whose centre is inside a box's projected corners'
-    rectangle, and a pixel round it. A ray through a box passes within the convex hull of its corners' projections,
-    so a pixel left out sees none of the boxes. None where some corner is not in front of the
-    camera (its projection would wrap round): every pixel may then see them.
+    rectangle, and a pixel round it. A ray through a box passes within the convex hull of its
+    corners' projections, so a pixel left out sees none of the boxes. None where some corner
+    is not in front of the camera (its projection would wrap round): every pixel may then see
+    them.
 
     Example:
         >>> near, far = 0.1, 10.0  # a 90° perspective down -Z, 8×8 pixels

@@ -262,8 +262,9 @@ def render_marched_stopping_early(
     The rays' spans that may hold density are found first (``occupied_spans``, one coarse
     query a span); then each ray marches ``INFERENCE_SPANS`` of its spans in fine steps, twice
     as many each round after, and a ray stops once its transmittance is below
-    ``stop.opaque_transmittance`` (exact: what it would still add is under 1e-4 of a pixel). Empty space and what lies behind a
-    surface cost nothing; world positions are made only for samples in occupied cells."""
+    ``stop.opaque_transmittance`` (exact: what it would still add is under 1e-4 of a pixel).
+    Empty space and what lies behind a surface cost nothing; world positions are made only for
+    samples in occupied cells."""
     rays = origins.shape[0]
     transmittance = origins.new_ones(rays)
     rgb = origins.new_zeros((rays, 3))
@@ -305,7 +306,8 @@ def render_marched_stopping_early(
         weights = round_weights * entering[:, None]
         # Colour where light still reaches (what lies behind adds under the stop's transmittance),
         # of the samples with density, but for the faintest: up to the stop's skipped weight of
-        # each ray's weight is left without colour and given its other samples' mean colour at the end.
+        # each ray's weight is left without colour and given its other samples' mean colour at
+        # the end.
         lit = (density > 0) & ((round_transmittance * entering[:, None]) > stop.opaque_transmittance)
         faint = lit & (weights < stop.skipped_weight)
         faint_sum = torch.cumsum(weights * faint, dim=1) + skipped.index_select(0, active)[:, None]
