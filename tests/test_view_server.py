@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from nerf_backend.core.cameras import (Intrinsics, camera_rays, pixel_centres, pixels_seeing_boxes,
-                                       rays_from_matrices)
+                                       ray_box_intersection, rays_from_matrices)
 from nerf_backend.data.dataset import load_split
 from nerf_backend.data.run_folder import RunFolder
 from nerf_backend.evaluation.inference import load_trained_model
@@ -123,14 +123,11 @@ def test_an_orthographic_views_rays_are_parallel(test_view):
 
 
 def _boxes_hit(origins, directions, corners):
-    """Whether each ray meets one of the boxes (slab test in float64)."""
-    low, high = corners.double().amin(dim=1), corners.double().amax(dim=1)
-    inverse = 1.0 / torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions).double()
-    t0 = (low[None] - origins.double()[:, None]) * inverse[:, None]
-    t1 = (high[None] - origins.double()[:, None]) * inverse[:, None]
-    near = torch.minimum(t0, t1).amax(dim=-1).clamp_min(0.0)
-    far = torch.maximum(t0, t1).amin(dim=-1)
-    return (far >= near).any(dim=1)
+    """Whether each ray meets one of the boxes (the project's slab test, box by box)."""
+    hit = torch.zeros(origins.shape[0], dtype=torch.bool)
+    for box in corners:
+        hit |= ray_box_intersection(origins, directions, box.amin(dim=0), box.amax(dim=0))[2]
+    return hit
 
 
 @pytest.mark.parametrize("kind", ["perspective", "orthographic"])

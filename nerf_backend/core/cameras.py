@@ -172,8 +172,8 @@ def pixels_seeing_boxes(corners: Tensor, view: Tensor, projection: Tensor, width
     """
     if corners.shape[0] == 0:
         return torch.zeros(0, dtype=torch.int64)
-    clip = corners.double().reshape(-1, 3) @ (projection.double() @ view.double())[:, :3].T
-    clip = clip + (projection.double() @ view.double())[:, 3]
+    to_clip = projection.double() @ view.double()
+    clip = corners.double().reshape(-1, 3) @ to_clip[:, :3].T + to_clip[:, 3]
     if not bool((clip[:, 3] > 0).all()):
         return None
     ndc = (clip[:, :2] / clip[:, 3:]).reshape(-1, 8, 2)
