@@ -304,10 +304,9 @@ def render_marched_stopping_early(
         round_weights, round_transmittance = render_weights(density, deltas)
         entering = transmittance.index_select(0, active)
         weights = round_weights * entering[:, None]
-        # Colour where light still reaches (what lies behind adds under the stop's transmittance),
-        # of the samples with density, but for the faintest: up to the stop's skipped weight of
-        # each ray's weight is left without colour and given its other samples' mean colour at
-        # the end.
+        # Colour where light still reaches (beyond the stop's transmittance), of the samples with
+        # density, but for the faintest: up to the stop's skipped weight of each ray's weight is
+        # left without colour and given its other samples' mean colour at the end.
         lit = (density > 0) & ((round_transmittance * entering[:, None]) > stop.opaque_transmittance)
         faint = lit & (weights < stop.skipped_weight)
         faint_sum = torch.cumsum(weights * faint, dim=1) + skipped.index_select(0, active)[:, None]
