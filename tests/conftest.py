@@ -14,6 +14,13 @@ from pathlib import Path
 import pytest
 from filelock import FileLock
 
+# The tests run the backend in their own processes too (train(), evaluate_run()...), where
+# nerf_backend/__main__.py's sleeping OpenMP threads are not set: under pytest-xdist's two
+# workers, one worker's spinning threads took the cores the other's work needed (a bfloat16
+# training of 300 steps beside a training process: 101 s spinning, 18.8 s sleeping). Set
+# before any test module loads torch; the user's own setting wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DIR = REPO_ROOT.parent / "shared"
 
