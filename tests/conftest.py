@@ -4,6 +4,9 @@ pytest-xdist (``make test`` runs two workers), once for all workers."""
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import importlib.metadata
 import os
 import shutil
 import subprocess
@@ -39,30 +42,74 @@ def run_python(*args: str, timeout: float = 900, check: bool = True, **kwargs) -
     return result
 
 
-def made_once(tmp_path_factory, name: str, make: Callable[[Path], None]) -> Path:
-    """A folder ``make(folder)`` fills, made once per test session. Under pytest-xdist the first
-    worker to ask makes it (under a file lock) and each worker gets its own copy, so that tests
-    which write into it (renders, reports) never race another worker's."""
-    own = tmp_path_factory.mktemp(name) / name
-    if not os.environ.get("PYTEST_XDIST_WORKER"):
-        make(own)
-        return own
-    shared_root = tmp_path_factory.getbasetemp().parent  # the same for every worker of this run
-    shared, done = shared_root / name, shared_root / f"{name}.done"
-    with FileLock(str(shared_root / f"{name}.lock")):
-        if not done.is_file():  # a worker that failed to make it left no mark: the next one tries again
-            shutil.rmtree(shared, ignore_errors=True)
-            make(shared)
+# Where fixtures that train or render are kept between test sessions, one folder a fixture and
+# key: NERF_TEST_CACHE, else the user's cache folder.
+FIXTURE_CACHE = Path(os.environ.get("NERF_TEST_CACHE") or Path.home() / ".cache" / "nerf-from-blender" / "test-fixtures")
+# What a fixture's files depend on besides its own settings: the code that makes them.
+CODE_FOLDERS = ("nerf_backend", "datasets_gen", "nerf_contract")
+
+
+@functools.cache
+def code_digest() -> str:
+    """A digest of every file of the backend, the generator and the contract, and of the Python,
+    torch and bpy that run them: a fixture made by other code is never reused."""
+    digest = hashlib.sha256()
+    for folder in CODE_FOLDERS:
+        for path in sorted((REPO_ROOT / folder).rglob("*")):
+            if path.is_file() and "__pycache__" not in path.parts:
+                digest.update(str(path.relative_to(REPO_ROOT)).encode() + b"\0" + path.read_bytes() + b"\0")
+    for package in ("torch", "bpy", "numpy"):
+        try:
+            digest.update(f"{package} {importlib.metadata.version(package)}".encode())
+        except importlib.metadata.PackageNotFoundError:
+            digest.update(f"{package} absent".encode())
+    digest.update(sys.version.encode())
+    return digest.hexdigest()[:16]
+
+
+def cached_fixture(name: str, settings: list[str], make: Callable[[Path], None]) -> Path:
+    """The folder ``make(folder)`` fills, kept in FIXTURE_CACHE under a key of ``settings`` and
+    ``code_digest()``: made once, by whichever process (pytest-xdist's workers, a second
+    ``make test``) asks first under the key's file lock, and reused while the code and settings
+    stay the same. A maker that failed leaves no ``.done`` mark, so the next one starts afresh;
+    making a key removes the same fixture's other keys. Read it, never write into it:
+    ``own_copy`` gives a test session its own."""
+    key = hashlib.sha256("\0".join([code_digest(), name, *settings]).encode()).hexdigest()[:16]
+    FIXTURE_CACHE.mkdir(parents=True, exist_ok=True)
+    folder = FIXTURE_CACHE / f"{name}-{key}"
+    done = folder.with_name(folder.name + ".done")
+    with FileLock(str(folder.with_name(folder.name + ".lock"))):
+        if not (done.is_file() and folder.is_dir()):
+            shutil.rmtree(folder, ignore_errors=True)
+            make(folder)
             done.touch()
-    shutil.copytree(shared, own, symlinks=True)
+            for stale in FIXTURE_CACHE.glob(f"{name}-*.done"):
+                if stale != done:
+                    stale.unlink(missing_ok=True)
+                    shutil.rmtree(stale.with_suffix(""), ignore_errors=True)
+    return folder
+
+
+def own_copy(tmp_path_factory, folder: Path) -> Path:
+    """This session's own copy of a cached fixture: tests that write into it (renders, reports)
+    never race another worker's or change the cache."""
+    own = tmp_path_factory.mktemp(folder.name) / folder.name.rsplit("-", 1)[0]
+    shutil.copytree(folder, own, symlinks=True)
     return own
 
 
 @pytest.fixture(scope="session")
-def tiny_demo_dataset(tmp_path_factory) -> Path:
-    """The demo scene rendered by Cycles at 40×40 (30 train, 2 val, 4 test views)."""
-    return made_once(tmp_path_factory, "tiny_demo",
-                     lambda out: run_python("-m", "datasets_gen", *TINY_DEMO_ARGS, "--out", str(out)))
+def tiny_demo_source() -> Path:
+    """The demo scene rendered by Cycles at 40×40 (30 train, 2 val, 4 test views), in the fixture
+    cache: the dataset the shared runs train on (read only)."""
+    return cached_fixture("tiny_demo", TINY_DEMO_ARGS,
+                          lambda out: run_python("-m", "datasets_gen", *TINY_DEMO_ARGS, "--out", str(out)))
+
+
+@pytest.fixture(scope="session")
+def tiny_demo_dataset(tiny_demo_source, tmp_path_factory) -> Path:
+    """This session's copy of the tiny demo dataset."""
+    return own_copy(tmp_path_factory, tiny_demo_source)
 
 
 @pytest.fixture(scope="session")
@@ -73,31 +120,32 @@ def shared_scenes() -> Path:
     return path
 
 
-TRAIN_ITERS = 400
+def _trained(tmp_path_factory, dataset: Path, name: str, *arguments: str) -> Path:
+    """A copy of the run ``train DATASET ARGUMENTS`` makes, trained once into the fixture cache;
+    its config names the cached dataset."""
+    return own_copy(tmp_path_factory, cached_fixture(name, [dataset.name, *arguments], lambda run: run_python(
+        "-m", "nerf_backend", "train", str(dataset), "--out", str(run), *arguments, "--no-progress")))
+
+
+TRAIN_ITERS = 250
 
 
 @pytest.fixture(scope="session")
-def trained_run(tiny_demo_dataset, tmp_path_factory) -> Path:
+def trained_run(tiny_demo_source, tmp_path_factory) -> Path:
     """The preview preset trained for TRAIN_ITERS iterations on the tiny demo dataset."""
-    return made_once(tmp_path_factory, "preview_run", lambda run: run_python(
-        "-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "preview", "--out", str(run),
-        "--iters", str(TRAIN_ITERS), "--no-progress"))
+    return _trained(tmp_path_factory, tiny_demo_source, "preview_run", "--preset", "preview", "--iters", str(TRAIN_ITERS))
 
 
 @pytest.fixture(scope="session")
-def trained_marched_run(tiny_demo_dataset, tmp_path_factory) -> Path:
+def trained_marched_run(tiny_demo_source, tmp_path_factory) -> Path:
     """The fast preset (a marched grid) trained for 300 steps on the tiny demo dataset."""
-    return made_once(tmp_path_factory, "fast_run", lambda run: run_python(
-        "-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "fast", "--iters", "300",
-        "--out", str(run), "--no-progress"))
+    return _trained(tmp_path_factory, tiny_demo_source, "fast_run", "--preset", "fast", "--iters", "300")
 
 
 @pytest.fixture(scope="session")
-def trained_surface_run(tiny_demo_dataset, tmp_path_factory) -> Path:
+def trained_surface_run(tiny_demo_source, tmp_path_factory) -> Path:
     """The surface preset trained for 600 steps on the tiny demo dataset (from its prior)."""
-    return made_once(tmp_path_factory, "surface_run", lambda run: run_python(
-        "-m", "nerf_backend", "train", str(tiny_demo_dataset), "--preset", "surface", "--iters", "600",
-        "--out", str(run), "--no-progress"))
+    return _trained(tmp_path_factory, tiny_demo_source, "surface_run", "--preset", "surface", "--iters", "600")
 
 
 def camera_path_through_test_views(dataset: Path, folder: Path, repeats: int = 1, copy_images: bool = True) -> tuple:

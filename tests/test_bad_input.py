@@ -684,8 +684,7 @@ class _RunsCodeWhenUnpickled:
         return (Path.touch, (self.marker,))
 
 
-def test_a_checkpoint_carrying_a_python_object_is_refused_and_runs_nothing(trained_run, tiny_demo_dataset, tmp_path,
-                                                                          capsys):
+def test_a_checkpoint_carrying_a_python_object_is_refused_and_runs_nothing(trained_run, tmp_path, capsys):
     """Checkpoints hold data only (weights_only=True): a run folder someone else made cannot
     run code when it is opened, resumed or rendered."""
     import shutil
@@ -699,8 +698,9 @@ def test_a_checkpoint_carrying_a_python_object_is_refused_and_runs_nothing(train
     state["payload"] = _RunsCodeWhenUnpickled(marker)
     torch.save(state, run / "checkpoint.pt")
     before = _snapshot(run)
+    dataset = json.loads((run / "config.json").read_text())["dataset"]  # resumed on its own dataset
     for args in (["render", str(run), "--device", "cpu", "--no-progress"],
-                 ["train", str(tiny_demo_dataset), "--out", str(run), "--resume", "--iters", "5", "--no-progress"]):
+                 ["train", dataset, "--out", str(run), "--resume", "--iters", "5", "--no-progress"]):
         code = main(args)
         _assert_one_error_line(capsys.readouterr().err, str(run / "checkpoint.pt"), "refused", "could run code")
         assert code == 2 and not marker.exists(), args

@@ -129,7 +129,7 @@ def test_bench_table_has_geometry_columns_only_with_a_truth():
 
 
 def test_eval_geometry_scores_a_trained_run(trained_run, tiny_demo_dataset):
-    # The preview NeRF after 400 steps is soft: the mesh command's test threshold (5) is given.
+    # The preview NeRF after 250 steps is soft: the mesh command's test threshold (5) is given.
     result = run_python("-m", "nerf_backend", "eval", str(trained_run), "--geometry", "--mesh-resolution", "48",
                         "--mesh-threshold", "5", "--no-progress")
     record = json.loads((trained_run / "geometry.json").read_text())

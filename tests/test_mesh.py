@@ -95,7 +95,7 @@ def test_ply_and_obj_files_hold_the_mesh(tmp_path):
 
 def test_a_trained_run_meshes_through_the_cli(trained_run, tmp_path):
     out = tmp_path / "demo.ply"
-    # The preview NeRF after 400 steps is soft (its densest point: 17.5 a unit), below the
+    # The preview NeRF after 250-400 steps is soft (its densest point: 17.5 a unit at 400), below the
     # default rule's ln 2 / voxel = 17.4 at this resolution: a threshold is given.
     result = run_python("-m", "nerf_backend", "mesh", str(trained_run), "--resolution", "48", "--threshold", "5",
                         "--out", str(out))
