@@ -83,9 +83,11 @@ def _both(model, rays, library):
     return compiled, reference
 
 
+@pytest.mark.parametrize("threads", [1, 2, 3])  # the march splits its rays over the threads torch has
 @pytest.mark.parametrize("preset, spread, surface", [("fast", 1.4, {}), ("auto", 1.4, {}), ("surface", 1.0, {}),
                                                      ("surface", 20.0, {"opacity": "neus"})])
-def test_the_compiled_march_renders_pytorchs_image(preset, spread, surface, library):
+def test_the_compiled_march_renders_pytorchs_image(preset, spread, surface, threads, library, monkeypatch):
+    monkeypatch.setattr(torch, "get_num_threads", lambda: threads)
     model = _model(preset, seed=3, spread=spread, **surface)
     assert 0.01 < model.occupancy.occupied_fraction < 0.98  # both kinds of space
     compiled, reference = _both(model, _rays(3000, seed=4), library)
