@@ -23,6 +23,14 @@ from filelock import FileLock
 # training of 300 steps beside a training process: 101 s spinning, 18.8 s sleeping). Set
 # before any test module loads torch; the user's own setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# Under pytest-xdist the cores are shared out between the workers (two on two cores: a thread
+# each), for the tests' own processes and what they start; a run that takes torch's thread
+# count still splits its work over several threads where a kernel's test asks for them
+# (test_compiled_*.py, test_sparse_grid.py: 1, 2 and 3). Two trainings side by side of fast's
+# 300 steps on the tiny demo: 14.3 s with two threads each, 12.4 s with one.
+if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1)
+                                                     // int(os.environ["PYTEST_XDIST_WORKER_COUNT"]))))
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DIR = REPO_ROOT.parent / "shared"
@@ -123,8 +131,10 @@ def shared_scenes() -> Path:
 def _trained(tmp_path_factory, dataset: Path, name: str, *arguments: str) -> Path:
     """A copy of the run ``train DATASET ARGUMENTS`` makes, trained once into the fixture cache;
     its config names the cached dataset."""
+    # Every core: the other worker is most often waiting for the same run.
+    every_core = dict(os.environ, OMP_NUM_THREADS=str(os.cpu_count() or 1))
     return own_copy(tmp_path_factory, cached_fixture(name, [dataset.name, *arguments], lambda run: run_python(
-        "-m", "nerf_backend", "train", str(dataset), "--out", str(run), *arguments, "--no-progress")))
+        "-m", "nerf_backend", "train", str(dataset), "--out", str(run), *arguments, "--no-progress", env=every_core)))
 
 
 TRAIN_ITERS = 250
