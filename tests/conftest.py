@@ -1,6 +1,7 @@
 """Shared fixtures: a tiny dataset rendered by real Blender (the bpy module) through the
-generator's own command line, and runs trained on it, once per test session: under
-pytest-xdist (``make test`` runs two workers), once for all workers."""
+generator's own command line, and runs trained on it, made once and kept in a cache on disk
+keyed by their settings and the code that made them (``cached_fixture``); each test session
+(each pytest-xdist worker) takes its own copy."""
 
 from __future__ import annotations
 
@@ -28,9 +29,9 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 # count still splits its work over several threads where a kernel's test asks for them
 # (test_compiled_*.py, test_sparse_grid.py: 1, 2 and 3). Two trainings side by side of fast's
 # 300 steps on the tiny demo: 14.3 s with two threads each, 12.4 s with one.
-if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
-    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1)
-                                                     // int(os.environ["PYTEST_XDIST_WORKER_COUNT"]))))
+XDIST_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+if XDIST_WORKERS > 1:
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // XDIST_WORKERS)))
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DIR = REPO_ROOT.parent / "shared"
