@@ -39,7 +39,7 @@ from ..core.files import write_json
 from ..core.ply import read_ply
 from ..data.dataset import load_scene_profile
 from ..data.run_folder import RunFolder
-from ..metrics.geometry import sample_surface, surface_area, surface_distances
+from ..metrics.geometry import nearest_points, sample_surface, surface_area, surface_distances
 from .mesh import run_mesh
 from .report_plots import plot_surface_error
 
@@ -149,9 +149,7 @@ def score_geometry(run: RunFolder, device: torch.device, resolution: int = DEFAU
                                                      truth.faces, truth.tau, samples)
     picture = run.path / GEOMETRY_PICTURE
     drawn = points[:DRAWN_POINTS]  # the samples are in random order: any prefix is uniform
-    from scipy.spatial import cKDTree  # here: scipy.spatial takes 0.25 s to import, and few commands score geometry
-
-    plot_surface_error(picture, drawn, cKDTree(true_points).query(drawn)[0], true_points[:DRAWN_POINTS], truth.tau)
+    plot_surface_error(picture, drawn, nearest_points(true_points, drawn)[0], true_points[:DRAWN_POINTS], truth.tau)
     record = {
         **scores,
         "tau_rule": TAU_RULE,
