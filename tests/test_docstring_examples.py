@@ -23,7 +23,7 @@ def _modules(package) -> list[str]:
 # The backend, datasets_gen's plain side (its Blender side imports bpy), and the contract.
 MODULES = _modules(nerf_backend) + _modules(datasets_gen.core) + _modules(datasets_gen.io) + _modules(nerf_contract)
 # The add-on's plain modules with examples (no bpy).
-MODULES += ["addon.torch_builds", "addon.backend_setup", "addon.live_view", "addon.composite_pixels"]
+MODULES += ["addon.core.torch_builds", "addon.core.backend_setup", "addon.core.live_view", "addon.core.composite_pixels"]
 
 
 @pytest.mark.parametrize("name", MODULES)

@@ -12,7 +12,8 @@ from datasets_gen import generator
 from datasets_gen.core.options import options_from_keywords
 from nerf_contract.dataset_layout import SPLITS, transforms_name
 
-from . import sources, ui_text
+from ..core import sources
+from . import ui_text
 from .job_timer import dataset_job, ensure_timer, status
 from .paths import dataset_dir, settings
 

@@ -9,9 +9,9 @@ from pathlib import Path
 import bpy
 from bpy.app.handlers import persistent
 
-from .backend_setup import BackendSetup
+from ..core.backend_setup import BackendSetup
+from ..core.jobs import AnimationJob, AssetJob, DatasetJob, JobStatus, TrainingJob
 from .images import PREVIEW_IMAGE, show_animation, show_image
-from .jobs import AnimationJob, AssetJob, DatasetJob, JobStatus, TrainingJob
 from .paths import animation_dir, asset_dir, dataset_dir, run_dir
 from .scene_import import asset_view_warning, import_asset
 

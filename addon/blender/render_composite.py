@@ -24,9 +24,9 @@ import numpy as np
 
 from nerf_contract.run_layout import CHECKPOINT_NAME
 
-from . import sources
-from .composite_pixels import EMPTY_DEPTH, compositor_pixels
-from .live_view import LiveViewClient
+from ..core import sources
+from ..core.composite_pixels import EMPTY_DEPTH, compositor_pixels
+from ..core.live_view import LiveViewClient
 from .paths import backend_python
 from .viewport_overlay import placement
 

@@ -25,8 +25,8 @@ import numpy as np
 from gpu_extras.batch import batch_for_shader
 from mathutils import Matrix
 
-from . import sources
-from .live_view import LiveFrame, LiveViewClient, ViewScheduler
+from ..core import sources
+from ..core.live_view import LiveFrame, LiveViewClient, ViewScheduler
 
 TICK_SECONDS = 0.02  # the timer's period while the live view is on: frames reach the screen within it
 # The frames hold the NeRF's colour as its training images held it: display-referred sRGB

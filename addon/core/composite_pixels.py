@@ -10,7 +10,7 @@ another view (AgX, Filmic) the NeRF is shown through it as the rest of the scene
 
 Example:
     >>> import numpy as np
-    >>> from addon.live_view import LiveFrame
+    >>> from addon.core.live_view import LiveFrame
     >>> rgba = np.array([0.5, 0.5, 0.5, 1.0, 0, 0, 0, 0], np.float32)   # grey, then empty
     >>> depth = np.array([2.5, np.inf], np.float32)
     >>> colour, z = compositor_pixels(LiveFrame(1, 2, 1, rgba.tobytes(), depth.tobytes(), 0.1, 0))

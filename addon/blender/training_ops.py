@@ -7,10 +7,10 @@ import os
 
 import bpy
 
-from . import sources
-from .backend_setup import BackendSetup, check_backend
+from ..core import sources
+from ..core.backend_setup import BackendSetup, check_backend
+from ..core.jobs import default_base_python
 from .job_timer import backend_setup, ensure_timer, training_job, watch_backend_setup
-from .jobs import default_base_python
 from .paths import backend_python, dataset_dir, managed_venv, settings, torch_build
 
 
