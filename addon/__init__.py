@@ -6,7 +6,8 @@ Its code is of two kinds, each in a package of its own:
 - ``core/``: plain Python, never ``bpy``, ``mathutils`` or ``gpu``, tested without Blender: the
   background jobs (``jobs``), Set Up Backend and its PyTorch build (``backend_setup``,
   ``torch_builds``), the live view's client and scheduler (``live_view``), the frames' pixels
-  for the compositor (``composite_pixels``) and where the backends are (``sources``).
+  for the compositor (``composite_pixels``), where the backends are (``sources``) and the
+  panel's wording (``panel_text``).
 - ``blender/``: what runs only inside Blender, which draws and calls ``core``: the settings
   (``properties``), the buttons (``operators``, by concern in the ``*_ops`` modules), the panel
   (``panel``, ``ui_text``), the timer that polls the jobs (``job_timer``), the live view's

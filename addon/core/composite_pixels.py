@@ -28,6 +28,20 @@ import numpy as np
 EMPTY_DEPTH = 1.0e20
 
 
+def render_size(resolution_x: int, resolution_y: int, percentage: int) -> tuple[int, int]:
+    """The pixels a render makes: the scene's resolution at its percentage (rounded down, as
+    Blender does), at least one each way."""
+    return max(1, resolution_x * percentage // 100), max(1, resolution_y * percentage // 100)
+
+
+def empty_pixels(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(colour, depth)`` as ``compositor_pixels`` makes them, for a frame without the NeRF:
+    colour transparent black, depth ``EMPTY_DEPTH`` (alpha 1), so Z Combine keeps the scene."""
+    depth = np.full((width * height, 4), EMPTY_DEPTH, np.float32)
+    depth[:, 3] = 1.0
+    return np.zeros(width * height * 4, np.float32), depth.ravel()
+
+
 def srgb_to_linear(values: np.ndarray) -> np.ndarray:
     """The sRGB transfer function undone (IEC 61966-2-1), as Blender's Standard view encodes."""
     return np.where(values <= 0.04045, values / 12.92, ((values + 0.055) / 1.055) ** 2.4)

@@ -118,7 +118,7 @@ report["train"]["final"] = {"state": state.state, "detail": state.detail, "error
                             "preview_image": sys.modules[f"{module}.blender.images"].PREVIEW_IMAGE in bpy.data.images,
                             "cpu_threads": [e.cpu_threads for e in training_events.read_events(
                                 paths.run_dir(bpy.context) / EVENTS_NAME) if isinstance(e, training_events.Start)],
-                            "cpu_threads_asked": sys.modules[f"{module}.blender.training_ops"].training_cpu_threads()}
+                            "cpu_threads_asked": sys.modules[f"{module}.core.jobs"].training_cpu_threads()}
 save()
 
 # 4. results: test views as images, and the active camera against Cycles
