@@ -10,7 +10,7 @@ import pytest
 
 from addon.core.backend_setup import BackendSetup, describe_check, run_check
 from addon.core.torch_builds import (INDEX, PlatformFacts, TorchBuild, choose_build, detect_facts, install_commands,
-                                parse_nvidia_smi, parse_rocminfo, torch_requirement)
+                                     parse_nvidia_smi, parse_rocminfo, torch_requirement)
 from conftest import REPO_ROOT
 
 # nvidia-smi's summary table as drivers print it (the header carries the newest CUDA the driver
