@@ -70,7 +70,7 @@ def test_every_kernel_builds_from_the_zip_alone(extension_zip, tmp_path):
 def test_the_zip_holds_the_addon_the_backend_and_the_wheel_and_nothing_else(extension_zip):
     archive = zipfile.ZipFile(extension_zip)
     names = archive.namelist()
-    assert "blender_manifest.toml" in names and "__init__.py" in names and "operators.py" in names
+    assert "blender_manifest.toml" in names and "__init__.py" in names and "blender/operators.py" in names
     assert "nerf_backend/training/trainer.py" in names and "nerf_contract/commands.py" in names
     assert "nerf_backend/configs/presets.json" in names  # data files travel with the code
     assert "nerf_backend/requirements.txt" in names and "nerf_backend/requirements-no-deps.txt" in names
@@ -348,7 +348,7 @@ def test_every_icon_the_addon_names_exists_in_this_blender(version, tmp_path):
     import re
 
     # Every upper-case string on a line that mentions an icon (also `icon = "A" if ... else "B"`).
-    used = sorted({name for path in (REPO_ROOT / "addon").glob("*.py") for line in path.read_text().splitlines()
+    used = sorted({name for path in (REPO_ROOT / "addon").rglob("*.py") for line in path.read_text().splitlines()
                    if "icon" in line for name in re.findall(r"""["']([A-Z][A-Z0-9_]+)["']""", line)})
     assert {"ARROW_LEFTRIGHT", "PAUSE", "BLANK1"} <= set(used), f"the pattern no longer finds the add-on's icons: {used}"
     script = tmp_path / "icons.py"

@@ -15,9 +15,9 @@ from pathlib import Path
 import pytest
 from conftest import REPO_ROOT, SHARED_DIR, camera_path_through_test_views
 
-from addon.backend_setup import BackendSetup, check_backend
-from addon.jobs import AnimationJob, AssetJob, DatasetJob, TrainingJob
-from addon.torch_builds import TorchBuild
+from addon.core.backend_setup import BackendSetup, check_backend
+from addon.core.jobs import AnimationJob, AssetJob, DatasetJob, TrainingJob
+from addon.core.torch_builds import TorchBuild
 from datasets_gen.core.options import options_from_keywords
 
 

@@ -25,7 +25,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from addon.jobs import TrainingJob
+from addon.core.jobs import TrainingJob
 from conftest import run_python
 from nerf_backend.data.dataset import load_split
 from nerf_backend.metrics.image_metrics import psnr

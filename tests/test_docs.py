@@ -7,7 +7,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from addon.torch_builds import CUDA_BUILDS, ROCM_BUILD
+from addon.core.torch_builds import CUDA_BUILDS, ROCM_BUILD
 from nerf_backend.bench.pages import INDEX_NAME, index_markdown, page_provenance
 from conftest import REPO_ROOT
 

@@ -9,6 +9,7 @@ import pkgutil
 
 import pytest
 
+import addon.core
 import datasets_gen.core
 import datasets_gen.io
 import nerf_backend
@@ -20,10 +21,10 @@ def _modules(package) -> list[str]:
                   if not info.name.endswith("__main__"))
 
 
-# The backend, datasets_gen's plain side (its Blender side imports bpy), and the contract.
-MODULES = _modules(nerf_backend) + _modules(datasets_gen.core) + _modules(datasets_gen.io) + _modules(nerf_contract)
-# The add-on's plain modules with examples (no bpy).
-MODULES += ["addon.torch_builds", "addon.backend_setup", "addon.live_view", "addon.composite_pixels"]
+# The backend, datasets_gen's and the add-on's plain sides (their Blender sides import bpy), and
+# the contract.
+MODULES = (_modules(nerf_backend) + _modules(datasets_gen.core) + _modules(datasets_gen.io) + _modules(addon.core)
+           + _modules(nerf_contract))
 
 
 @pytest.mark.parametrize("name", MODULES)

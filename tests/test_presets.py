@@ -5,7 +5,7 @@ import json
 import pytest
 import torch
 
-from addon import sources
+from addon.core import sources
 from conftest import run_python
 from nerf_backend.configs.presets import PRESETS, load_presets
 from nerf_backend.configs.train_config import TrainConfig

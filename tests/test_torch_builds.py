@@ -8,9 +8,9 @@ import sys
 
 import pytest
 
-from addon.backend_setup import BackendSetup, describe_check, run_check
-from addon.torch_builds import (INDEX, PlatformFacts, TorchBuild, choose_build, detect_facts, install_commands,
-                                parse_nvidia_smi, parse_rocminfo, torch_requirement)
+from addon.core.backend_setup import BackendSetup, describe_check, run_check
+from addon.core.torch_builds import (INDEX, PlatformFacts, TorchBuild, choose_build, detect_facts, install_commands,
+                                     parse_nvidia_smi, parse_rocminfo, torch_requirement)
 from conftest import REPO_ROOT
 
 # nvidia-smi's summary table as drivers print it (the header carries the newest CUDA the driver
@@ -98,7 +98,7 @@ CASES = [
 
 @pytest.mark.parametrize("label, system, machine, outputs, key, device", CASES, ids=[case[0] for case in CASES])
 def test_the_build_follows_the_platform_and_gpu(label, system, machine, outputs, key, device, tmp_path, monkeypatch):
-    monkeypatch.setattr("addon.torch_builds._amd_gpu_in_sysfs", lambda drm=None: None)
+    monkeypatch.setattr("addon.core.torch_builds._amd_gpu_in_sysfs", lambda drm=None: None)
     build = choose_build(detect_facts(system, machine, run=recorded(outputs)))
     assert (build.key, build.device) == (key, device), build.reason
     if device in {"cuda", "rocm", "cpu"}:
@@ -130,7 +130,7 @@ def test_the_preferences_override_the_detected_choice():
 
 
 def test_an_amd_gpu_is_found_in_sysfs_without_rocm_tools(tmp_path):
-    from addon.torch_builds import _amd_gpu_in_sysfs
+    from addon.core.torch_builds import _amd_gpu_in_sysfs
 
     (tmp_path / "card0" / "device").mkdir(parents=True)
     (tmp_path / "card0" / "device" / "vendor").write_text("0x8086\n")  # Intel graphics

@@ -390,10 +390,10 @@ def test_bench_view_times_the_server_as_the_add_on_uses_it(trained_marched_run, 
 
 
 def test_the_add_ons_client_draws_newest_first_and_says_when_the_server_was_killed(trained_run, test_view):
-    """addon/live_view.py (plain Python, as Blender's timer drives it): frames arrive, an older
+    """addon/core/live_view.py (plain Python, as Blender's timer drives it): frames arrive, an older
     one is never handed out after a newer, a server killed with SIGKILL is reported with no
     frame drawn after it, a restart works, and stopping leaves no process and no files."""
-    from addon.live_view import LiveViewClient
+    from addon.core.live_view import LiveViewClient
     intrinsics, pose = test_view
     view = torch.linalg.inv(pose.double()).tolist()
     client = LiveViewClient()
@@ -428,7 +428,7 @@ def test_the_scheduler_serves_moving_views_first_then_every_view_in_turn():
     """Several 3D Views: one request in flight; a moving view gets quarter-size drafts before
     any other is served; at rest every view gets its whole region in turn, a draft and then
     exact; a frame is filed with the view it was asked for, and a region that goes is forgotten."""
-    from addon.live_view import EXACT, MOVING, REST_SECONDS, RESTING_DRAFT, LiveFrame, ViewScheduler
+    from addon.core.live_view import EXACT, MOVING, REST_SECONDS, RESTING_DRAFT, LiveFrame, ViewScheduler
     from nerf_contract.view_frames import DRAFT_STEP_SCALE
 
     def frame(request_id, request):
@@ -471,11 +471,11 @@ def test_the_scheduler_serves_moving_views_first_then_every_view_in_turn():
 
 
 def test_a_frame_goes_to_the_compositor_linear_premultiplied_with_empty_far_away():
-    """addon/composite_pixels.py (F12's images): the frame's sRGB colour decoded to linear (the
+    """addon/core/composite_pixels.py (F12's images): the frame's sRGB colour decoded to linear (the
     IEC 61966-2-1 curve: 0.5 → 0.21404, 0.04045 → 0.0031308) under its alpha, and depth where
     the NeRF is empty (infinite, or no opacity) far behind any render's background."""
-    from addon.composite_pixels import EMPTY_DEPTH, compositor_pixels
-    from addon.live_view import LiveFrame
+    from addon.core.composite_pixels import EMPTY_DEPTH, compositor_pixels
+    from addon.core.live_view import LiveFrame
 
     straight = np.array([[0.5, 1.0, 0.04045], [0.5, 0.0, 1.0], [0.2, 0.2, 0.2], [0.7, 0.7, 0.7]])
     alpha = np.array([1.0, 0.5, 0.0, 0.25])

@@ -1,11 +1,12 @@
 """Build the installable Blender extension and its repository: ``python
 tools/build_extension.py [--out DIR]`` (what ``make extension`` runs). Standard library only.
 
-The zip's root is the add-on package: ``blender_manifest.toml``, the ``addon/`` modules, the
+The zip's root is the add-on package: ``blender_manifest.toml``, ``addon/``'s contents (its
+``__init__.py``, ``core/`` and ``blender/``), the
 wheel the manifest names (``wheels/``: ``datasets_gen`` and ``nerf_contract``, which the add-on
 imports; Blender installs it beside its own modules, its recommended way to bundle Python
 modules), and the ``nerf_backend`` and ``nerf_contract`` sources as sub-folders, for the
-backend's own Python (see addon/sources.py). Nothing else goes in: no caches, no tests, no data.
+backend's own Python (see addon/core/sources.py). Nothing else goes in: no caches, no tests, no data.
 The wheel is written here with the standard library (a pure-Python wheel is a zip with three
 metadata files), with fixed timestamps so that the same sources give the same bytes.
 
@@ -49,7 +50,8 @@ def _sources(package: str) -> list[Path]:
 def extension_files() -> list[tuple[Path, str]]:
     """(source file, path inside the zip) for everything the extension ships, but its wheel."""
     files = [(REPO / "blender_manifest.toml", "blender_manifest.toml")]
-    files += [(path, path.name) for path in sorted((REPO / "addon").glob("*.py"))]
+    # The add-on package at the root: its __init__.py (the entry Blender registers), core/, blender/.
+    files += [(path, path.relative_to(REPO / "addon").as_posix()) for path in _sources("addon")]
     for package in BACKEND_PACKAGES:
         files += [(path, path.relative_to(REPO).as_posix()) for path in _sources(package)]
     files += [(REPO / name, name) for name in BACKEND_DATA]

@@ -71,7 +71,7 @@ report["tooltips"] = {**_tooltips(bpy.types.Scene.bl_rna.properties["nerf"].fixe
 builds = {}
 for choice in ("auto", "cu128"):
     addon.preferences.torch_build = choice
-    build = sys.modules[f"{module}.paths"].torch_build(bpy.context)
+    build = sys.modules[f"{module}.blender.paths"].torch_build(bpy.context)
     builds[choice] = {"key": build.key, "index_url": build.index_url, "text": build.describe()}
 addon.preferences.torch_build = "auto"
 report["torch_builds"] = builds
@@ -87,8 +87,8 @@ settings.dataset_dir = str(WORK / "dataset")
 settings.run_dir = str(WORK / "run")
 settings.train_views, settings.val_views, settings.test_views = 24, 2, 3
 settings.resolution, settings.samples = 32, 8
-job_timer, paths = sys.modules[f"{module}.job_timer"], sys.modules[f"{module}.paths"]
-report["scene_warnings"] = sys.modules[f"{module}.dataset_ops"].scene_warnings(bpy.context)
+job_timer, paths = sys.modules[f"{module}.blender.job_timer"], sys.modules[f"{module}.blender.paths"]
+report["scene_warnings"] = sys.modules[f"{module}.blender.dataset_ops"].scene_warnings(bpy.context)
 start = time.time()
 report["generate"] = {"result": sorted(bpy.ops.nerf.generate_dataset("EXEC_DEFAULT")), "seconds": time.time() - start,
                       "files": sorted(p.name for p in (WORK / "dataset").iterdir())}
@@ -115,10 +115,10 @@ report["train"] = {"result": sorted(bpy.ops.nerf.train()), "returned_after_s": t
 report["train"]["timer_registered"] = bpy.app.timers.is_registered(job_timer._tick)
 state = follow(str(paths.run_dir(bpy.context)), report["train"]["states"])
 report["train"]["final"] = {"state": state.state, "detail": state.detail, "error": state.error,
-                            "preview_image": sys.modules[f"{module}.images"].PREVIEW_IMAGE in bpy.data.images,
+                            "preview_image": sys.modules[f"{module}.blender.images"].PREVIEW_IMAGE in bpy.data.images,
                             "cpu_threads": [e.cpu_threads for e in training_events.read_events(
                                 paths.run_dir(bpy.context) / EVENTS_NAME) if isinstance(e, training_events.Start)],
-                            "cpu_threads_asked": sys.modules[f"{module}.training_ops"].training_cpu_threads()}
+                            "cpu_threads_asked": sys.modules[f"{module}.core.jobs"].training_cpu_threads()}
 save()
 
 # 4. results: test views as images, and the active camera against Cycles

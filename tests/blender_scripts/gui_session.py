@@ -50,11 +50,11 @@ def log(message: str) -> None:
 
 
 def job_timer():
-    return sys.modules[MODULE + ".job_timer"]
+    return sys.modules[MODULE + ".blender.job_timer"]
 
 
 def panel_classes() -> list:
-    return list(sys.modules[MODULE + ".panel"].CLASSES)
+    return list(sys.modules[MODULE + ".blender.panel"].CLASSES)
 
 
 def view3d():
@@ -308,7 +308,7 @@ def enable_add_on():
     preferences = bpy.context.preferences.addons[MODULE].preferences
     preferences.python_path = BACKEND_PYTHON
     log(f"enabled {MODULE}; backend {BACKEND_PYTHON}")
-    ok, message = sys.modules[MODULE + ".backend_setup"].check_backend(BACKEND_PYTHON)
+    ok, message = sys.modules[MODULE + ".core.backend_setup"].check_backend(BACKEND_PYTHON)
     assert ok, f"the backend's Python cannot run from this Blender: {message}"
     log(f"backend: {message}")
     yield 0.1
@@ -382,7 +382,7 @@ def flow():
     yield from press("nerf.train", "Resume")
     yield from wait(lambda: state_of(settings.run_dir) == "done", 600, "the resumed training to finish")
     report["done"] = {"iteration": job(settings.run_dir).iteration, "detail": job(settings.run_dir).detail,
-                      "preview": sys.modules[MODULE + ".images"].PREVIEW_IMAGE in bpy.data.images}
+                      "preview": sys.modules[MODULE + ".blender.images"].PREVIEW_IMAGE in bpy.data.images}
     yield from shot("08_trained")
 
     # Results where the user looks: an Image Editor.
@@ -521,13 +521,13 @@ def main(flow) -> None:
         except Exception:  # noqa: BLE001 - every failure goes to the report, then Blender quits
             report["error"] = traceback.format_exc()
             print(report["error"], flush=True)
-            if MODULE + ".job_timer" in sys.modules:  # the add-on may be disabled at the time
+            if MODULE + ".blender.job_timer" in sys.modules:  # the add-on may be disabled at the time
                 report["status_at_error"] = {folder: repr(status) for folder, status in job_timer().status.items()}
                 for job in job_timer()._jobs.values():  # a backend left running would slow every later test
                     if job.is_running():
                         job.kill()
-            if MODULE + ".viewport_overlay" in sys.modules:
-                sys.modules[MODULE + ".viewport_overlay"].stop()
+            if MODULE + ".blender.viewport_overlay" in sys.modules:
+                sys.modules[MODULE + ".blender.viewport_overlay"].stop()
             try:
                 subprocess.run(["import", "-window", "root", str(SHOTS / "zz_at_error.png")], timeout=60)
             except (OSError, subprocess.SubprocessError):

@@ -42,7 +42,7 @@ FRONT, BEHIND = "Live view front cube", "Live view back plane"
 
 
 def overlay():
-    return sys.modules[gui.MODULE + ".viewport_overlay"]
+    return sys.modules[gui.MODULE + ".blender.viewport_overlay"]
 
 
 def viewport():
@@ -56,7 +56,7 @@ def region_view():
 def full_frame_drawn() -> bool:
     """The whole region drawn exact (after its draft) for the view as it is now."""
     view = region_view()
-    exact = sys.modules[gui.MODULE + ".live_view"].EXACT
+    exact = sys.modules[gui.MODULE + ".core.live_view"].EXACT
     return (view is not None and view.frame_stage == exact and view.frame_signature == view.signature
             and overlay()._textures.get(viewport().as_pointer()) is not None
             and overlay()._textures[viewport().as_pointer()].request_id == view.frame.request_id)
@@ -309,7 +309,7 @@ def f12_with_the_nerf():
     with bpy.context.temp_override(window=window, area=area, region=region):
         turned_on = sorted(bpy.ops.nerf.render_composite())
     yield from f12("f12_nerf")
-    composite = sys.modules[gui.MODULE + ".render_composite"]
+    composite = sys.modules[gui.MODULE + ".blender.render_composite"]
     corners = [world_to_camera_view(scene, camera, bpy.data.objects[FRONT].matrix_world @ Vector(c))
                for c in bpy.data.objects[FRONT].bound_box]
     report["live"]["f12"] = {"turned_on": turned_on, "message": composite.last_message,

@@ -89,7 +89,7 @@ def _tree_nodes(scene) -> list:
 def nerf_renders(context, module: str, out: Path) -> None:
     """The NeRF's own ``render`` of the camera at each frame, at the render size (the backend's
     command, not the server F12 uses)."""
-    results_ops = sys.modules[f"{module}.results_ops"]
+    results_ops = sys.modules[f"{module}.blender.results_ops"]
     scene = context.scene
     world_to_nerf, _ = results_ops._dataset_camera_settings(context)
     intrinsics = results_ops._active_camera_intrinsics(context, *SIZE)
@@ -132,7 +132,7 @@ def run(context, module: str, work: Path, originals: list, eevee: bool = True) -
     report = {"folder": str(out), "nodes_before": _tree_nodes(scene)}
     report["alone"] = _render(scene, "CYCLES", out / "alone_", animation=True)
     report["turn_on"] = sorted(bpy.ops.nerf.render_composite())
-    composite = sys.modules[f"{module}.render_composite"]
+    composite = sys.modules[f"{module}.blender.render_composite"]
     report["nodes_on"] = _tree_nodes(scene)
     report["animation"] = _render(scene, "CYCLES", out / "f12_", animation=True)
     scene.frame_set(2)

@@ -7,20 +7,14 @@ from __future__ import annotations
 
 import bpy
 
-from nerf_contract.run_layout import CHECKPOINT_NAME
-
+from ..core.live_view import cannot_serve
 from . import render_composite, viewport_overlay
 from .paths import backend_python, run_dir, settings
 
 
 def _cannot_serve(context) -> str:
     """Why the run cannot be served yet ("" where it can)."""
-    run = run_dir(context)
-    if not backend_python(context):
-        return "no backend Python: press Set Up Backend, or choose one in the preferences"
-    if not (run / CHECKPOINT_NAME).is_file():
-        return f"{run}: no checkpoint yet: train first (a run still training is served from its first checkpoint)"
-    return ""
+    return cannot_serve(backend_python(context), run_dir(context))
 
 
 class NERF_OT_live_view(bpy.types.Operator):

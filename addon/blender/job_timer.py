@@ -9,11 +9,12 @@ from pathlib import Path
 import bpy
 from bpy.app.handlers import persistent
 
-from .backend_setup import BackendSetup
+from ..core.backend_setup import BackendSetup
+from ..core.jobs import AnimationJob, AssetJob, DatasetJob, JobStatus, TrainingJob
+from ..core.panel_text import asset_view_warning
 from .images import PREVIEW_IMAGE, show_animation, show_image
-from .jobs import AnimationJob, AssetJob, DatasetJob, JobStatus, TrainingJob
 from .paths import animation_dir, asset_dir, dataset_dir, run_dir
-from .scene_import import asset_view_warning, import_asset
+from .scene_import import import_asset
 
 _jobs: dict[str, object] = {}  # folder → job (keeps the Popen that started it)
 status: dict[str, JobStatus] = {}  # folder → last polled status, drawn by the panel
@@ -103,7 +104,7 @@ def _import_asset(state: JobStatus) -> None:
     """A finished export is imported into the scene, once."""
     try:
         state.extra["imported"] = import_asset(bpy.context, Path(state.extra["asset"])).name
-        state.warning = asset_view_warning(bpy.context.scene)
+        state.warning = asset_view_warning(bpy.context.scene.view_settings.view_transform)
     except (RuntimeError, OSError, KeyError) as exc:  # a file Blender cannot import: said in the panel
         state.warning = f"The asset could not be imported: {exc}"
 

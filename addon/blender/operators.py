@@ -1,6 +1,6 @@
 """The panel's buttons, collected for registration. Long work runs in other processes (a
 background Blender renders the dataset, the backend's Python trains); a timer polls them
-through ``jobs`` and redraws (``job_timer``). Blender never waits on them, except where no
+through ``core.jobs`` and redraws (``job_timer``). Blender never waits on them, except where no
 Blender binary exists to spawn (the ``bpy`` module), where the dataset is rendered in this
 process.
 

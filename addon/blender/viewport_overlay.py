@@ -2,7 +2,7 @@
 region's newest NeRF frame through the ``gpu`` module only (OpenGL, Vulkan and Metal alike; no
 ``bgl``, which Blender 5.0 removed), its depth tested against the scene's, and a timer on the
 main thread that hands the server's frames to the regions and sends the next request
-(``live_view``: the server's client and the scheduler, plain Python).
+(``core.live_view``: the server's client and the scheduler, plain Python).
 
 Each frame is drawn as one full-region quad whose fragment shader writes the NeRF's depth
 (the camera's z from the frame, taken through the region's own projection into the depth
@@ -25,8 +25,8 @@ import numpy as np
 from gpu_extras.batch import batch_for_shader
 from mathutils import Matrix
 
-from . import sources
-from .live_view import LiveFrame, LiveViewClient, ViewScheduler
+from ..core import sources
+from ..core.live_view import LiveFrame, LiveViewClient, ViewScheduler
 
 TICK_SECONDS = 0.02  # the timer's period while the live view is on: frames reach the screen within it
 # The frames hold the NeRF's colour as its training images held it: display-referred sRGB

@@ -1,5 +1,6 @@
 """View3D › Sidebar › NeRF: dataset, training, results, each with sub-panels. Drawing only;
-the buttons are in ``operators`` and the job state comes from ``job_timer``'s last poll.
+the buttons are in ``operators``, the job state comes from ``job_timer``'s last poll and the
+wording from ``core.panel_text``.
 
 Blender's conventions: property split (label left, field right) so labels get a column of
 their own at any sidebar width, title-case labels, settings that are not needed every time
@@ -8,11 +9,11 @@ in sub-panels."""
 from __future__ import annotations
 
 import json
-
 import time
 
 import bpy
 
+from ..core.panel_text import live_view_rate, progress_texts
 from . import render_composite, viewport_overlay
 from .images import COMPARISON_IMAGE, PREVIEW_IMAGE
 from .job_timer import status
@@ -26,13 +27,7 @@ def _draw_status(layout, context, state, idle_text: str) -> None:
         layout.label(text=idle_text, icon="INFO")
         return
     if state.state == "running":
-        left = f"{state.seconds_left:.0f} s left" if state.seconds_left is not None else ""
-        candidates = [", ".join(filter(None, (state.detail, left)))]
-        if state.iteration is not None:  # shorter forms for a narrow sidebar: a bar's text cannot wrap
-            psnr = f"{state.psnr:.1f} dB" if state.psnr is not None else ""
-            candidates += [", ".join(filter(None, (f"Iteration {state.iteration}", psnr, left))),
-                           ", ".join(filter(None, (str(state.iteration), psnr, left.replace(" left", "")))),
-                           str(state.iteration)]
+        candidates = progress_texts(state.detail, state.seconds_left, state.iteration, state.psnr)
         layout.progress(factor=state.fraction, type="BAR", text=first_fitting(context, candidates))
     elif state.state == "failed":
         box = layout.box()
@@ -218,7 +213,9 @@ class NERF_PT_results_live_view(_NerfPanel, bpy.types.Panel):
         if state == "starting":
             _text(layout, context, "Loading the model in the render server", icon="TIME")
         elif state == "ready":
-            _text(layout, context, _live_view_rate(), icon="CHECKMARK")
+            stats = viewport_overlay.stats
+            rate = live_view_rate(stats.delivered_at, stats.render_seconds, stats.iteration, time.monotonic())
+            _text(layout, context, rate, icon="CHECKMARK")
         elif state.startswith("stopped"):
             box = layout.box()
             box.alert = True
@@ -243,17 +240,6 @@ class NERF_PT_results_render(_NerfPanel, bpy.types.Panel):
         elif on:
             _text(layout, context, "F12 renders the NeRF from the scene's camera, by depth with the scene",
                   icon="INFO")
-
-
-def _live_view_rate() -> str:
-    """'7.4 frames/s, 0.13 s each, iteration 3000': the last two seconds' frames."""
-    stats, now = viewport_overlay.stats, time.monotonic()
-    recent = [at for at, _, _ in stats.delivered_at if now - at < 2.0]
-    iteration = stats.iteration
-    parts = [f"{len(recent) / 2.0:.1f} frames/s" if len(recent) > 1 else "Drawn",
-             f"{stats.render_seconds[-1]:.2f} s each" if stats.render_seconds else "",
-             f"iteration {iteration}" if iteration is not None else ""]
-    return ", ".join(filter(None, parts))
 
 
 CLASSES = (NERF_PT_dataset, NERF_PT_dataset_rendering, NERF_PT_training, NERF_PT_training_preview,

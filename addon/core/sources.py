@@ -14,7 +14,7 @@ from pathlib import Path
 
 import datasets_gen
 
-ADDON_DIR = Path(__file__).resolve().parent
+ADDON_DIR = Path(__file__).resolve().parents[1]  # the add-on's folder (this module is in its core/)
 
 
 def is_bundled() -> bool:

@@ -58,13 +58,3 @@ def import_asset(context, path: Path):
         raise RuntimeError(f"{path}: the glTF importer made {len(meshes)} mesh objects, not one")
     meshes[0].name = ASSET_OBJECT
     return meshes[0]
-
-
-def asset_view_warning(scene) -> str:
-    """What the user must know to see the asset as the NeRF shows it: its texture holds the
-    dataset images' colours, already through a view transform; another one maps them again."""
-    view = scene.view_settings.view_transform
-    if view == "Standard":
-        return ""
-    return (f"The asset's texture holds the colours its images show; the scene's view transform '{view}' "
-            "maps them again. Render with the Standard view transform to see them as the NeRF does.")

@@ -3,22 +3,13 @@ Set Up Backend (the Python environment that trains)."""
 
 from __future__ import annotations
 
-import os
-
 import bpy
 
-from . import sources
-from .backend_setup import BackendSetup, check_backend
+from ..core import sources
+from ..core.backend_setup import BackendSetup, check_backend
+from ..core.jobs import default_base_python, training_cpu_threads
 from .job_timer import backend_setup, ensure_timer, training_job, watch_backend_setup
-from .jobs import default_base_python
 from .paths import backend_python, dataset_dir, managed_venv, settings, torch_build
-
-
-def training_cpu_threads() -> int:
-    """All cores but one: Blender keeps one for its UI. torch's threads wait on each other, so
-    one core taken by another program slows training about 3x, while training on one core
-    fewer costs about a quarter on 2 cores (measured in the README) and less on more."""
-    return max(1, (os.cpu_count() or 2) - 1)
 
 
 class NERF_OT_train(bpy.types.Operator):

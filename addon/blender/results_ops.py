@@ -29,7 +29,7 @@ from nerf_contract.run_layout import (
     SIDE_BY_SIDE_NAME,
 )
 
-from . import sources
+from ..core import sources
 from .images import COMPARISON_IMAGE, show_image, show_in_image_editor
 from .paths import backend_python, dataset_dir, run_dir, settings
 

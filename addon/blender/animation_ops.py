@@ -17,13 +17,13 @@ from nerf_contract import commands
 from nerf_contract.dataset_layout import CAMERA_PATH_NAME
 from nerf_contract.run_layout import CHECKPOINT_NAME
 
-from . import sources
-from .backend_setup import check_backend
+from ..core import sources
+from ..core.backend_setup import check_backend
+from ..core.jobs import training_cpu_threads
 from .job_timer import animation_job, asset_job, ensure_timer
 from .paths import backend_python, dataset_dir, run_dir, settings
 from .results_ops import reporting_backend_errors, run_backend
 from .scene_import import import_mesh
-from .training_ops import training_cpu_threads
 
 
 def trained_run_backend(context) -> str:

@@ -18,6 +18,7 @@ where no NVIDIA GPU is. PyTorch publishes each build on an index of its own
 
 from __future__ import annotations
 
+import platform
 import re
 import subprocess
 from dataclasses import dataclass
@@ -175,8 +176,6 @@ def run_tool(command: list[str], timeout: float = 10) -> str | None:
 
 def detect_facts(system: str | None = None, machine: str | None = None, run: Runner = run_tool) -> PlatformFacts:
     """The facts of this machine (``run`` is replaced in tests by recorded outputs)."""
-    import platform
-
     system = system or platform.system()
     machine = machine or platform.machine()
     name = driver = cuda = None

@@ -11,9 +11,9 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, Po
 
 from datasets_gen.core.options import EXTRA_FORMATS
 
-from . import sources
-from .paths import backend_python, torch_build
-from .torch_builds import CUDA_BUILDS, ROCM_BUILD
+from ..core import sources
+from ..core.torch_builds import CUDA_BUILDS, ROCM_BUILD
+from .paths import ADDON_PACKAGE, backend_python, torch_build
 
 PRESETS = sources.backend_presets()  # presets.json, the backend's own list
 DEVICES = (("auto", "Auto", "CUDA, then Apple's MPS, then the CPU"), ("cpu", "CPU", "The CPU"),
@@ -93,7 +93,7 @@ TORCH_BUILDS = (("auto", "Detect", "The build for this machine's GPU (NVIDIA: a 
 
 
 class NerfPreferences(bpy.types.AddonPreferences):
-    bl_idname = __package__
+    bl_idname = ADDON_PACKAGE
 
     python_path: StringProperty(
         name="Backend Python", subtype="FILE_PATH", default="",

@@ -10,7 +10,7 @@ another view (AgX, Filmic) the NeRF is shown through it as the rest of the scene
 
 Example:
     >>> import numpy as np
-    >>> from addon.live_view import LiveFrame
+    >>> from addon.core.live_view import LiveFrame
     >>> rgba = np.array([0.5, 0.5, 0.5, 1.0, 0, 0, 0, 0], np.float32)   # grey, then empty
     >>> depth = np.array([2.5, np.inf], np.float32)
     >>> colour, z = compositor_pixels(LiveFrame(1, 2, 1, rgba.tobytes(), depth.tobytes(), 0.1, 0))
@@ -26,6 +26,20 @@ import numpy as np
 # where they see the background), so Z Combine keeps the scene there. Finite: the compositor's
 # filters and the depth output mishandle infinities.
 EMPTY_DEPTH = 1.0e20
+
+
+def render_size(resolution_x: int, resolution_y: int, percentage: int) -> tuple[int, int]:
+    """The pixels a render makes: the scene's resolution at its percentage (rounded down, as
+    Blender does), at least one each way."""
+    return max(1, resolution_x * percentage // 100), max(1, resolution_y * percentage // 100)
+
+
+def empty_pixels(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(colour, depth)`` as ``compositor_pixels`` makes them, for a frame without the NeRF:
+    colour transparent black, depth ``EMPTY_DEPTH`` (alpha 1), so Z Combine keeps the scene."""
+    depth = np.full((width * height, 4), EMPTY_DEPTH, np.float32)
+    depth[:, 3] = 1.0
+    return np.zeros(width * height * 4, np.float32), depth.ravel()
 
 
 def srgb_to_linear(values: np.ndarray) -> np.ndarray:

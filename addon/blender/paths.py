@@ -11,8 +11,12 @@ import bpy
 from nerf_contract.dataset_layout import safe_name
 from nerf_contract.run_layout import ANIMATIONS_DIR, ASSET_DIR
 
-from .jobs import python_in_venv
-from .torch_builds import PlatformFacts, TorchBuild, choose_build, detect_facts
+from ..core.jobs import python_in_venv
+from ..core.torch_builds import PlatformFacts, TorchBuild, choose_build, detect_facts
+
+# The add-on's own package (``bl_ext.REPO.nerf_from_blender`` installed), which Blender names its
+# preferences and user folder by; this module is in its blender/.
+ADDON_PACKAGE = __package__.rpartition(".")[0]
 
 
 def settings(context):
@@ -43,13 +47,13 @@ def asset_dir(context) -> Path:
 def managed_venv() -> Path:
     """Where Set Up Backend puts the backend's virtual environment (the extension's user folder)."""
     try:
-        return Path(bpy.utils.extension_path_user(__package__, path="backend-venv", create=True))
+        return Path(bpy.utils.extension_path_user(ADDON_PACKAGE, path="backend-venv", create=True))
     except (ValueError, AttributeError):  # not installed as an extension (a checkout)
         return Path(bpy.utils.user_resource("SCRIPTS", path="nerf_from_blender_backend", create=True))
 
 
 def _preferences(context):
-    addon = context.preferences.addons.get(__package__)
+    addon = context.preferences.addons.get(ADDON_PACKAGE)
     return addon.preferences if addon is not None else None
 
 

@@ -10,9 +10,10 @@ import bpy
 
 from datasets_gen import generator
 from datasets_gen.core.options import options_from_keywords
-from nerf_contract.dataset_layout import SPLITS, transforms_name
 
-from . import sources, ui_text
+from ..core import sources
+from ..core.jobs import dataset_complete
+from . import ui_text
 from .job_timer import dataset_job, ensure_timer, status
 from .paths import dataset_dir, settings
 
@@ -30,10 +31,6 @@ def dataset_options(context, out: Path):
         width=s.resolution, height=s.resolution, samples=s.samples, device=s.render_device, seed=s.seed,
         depth_normals=s.depth_normals, full_sphere=s.sphere, formats=tuple(sorted(s.dataset_formats)),
         resume=out.exists() and any(out.iterdir()))
-
-
-def _dataset_complete(out: Path) -> bool:
-    return all((out / transforms_name(split)).is_file() for split in SPLITS)
 
 
 def scene_warnings(context) -> list[str]:
@@ -69,7 +66,7 @@ class NERF_OT_generate_dataset(bpy.types.Operator):
 
     def execute(self, context):
         out = dataset_dir(context)
-        if _dataset_complete(out):
+        if dataset_complete(out):
             self.report({"ERROR"}, f"{out} already holds a complete dataset; choose another folder or remove it")
             return {"CANCELLED"}
         options = dataset_options(context, out)

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from nerf_contract import commands, view_frames
+from nerf_contract.run_layout import CHECKPOINT_NAME
 
 LOG_NAME = "serve.log"  # the server's stderr, in the frames folder: why it stopped
 
@@ -38,6 +39,16 @@ class LiveFrame:
     depth: bytes  # float32 camera z, +inf where empty
     seconds: float  # the server's render time
     iteration: int  # the checkpoint's
+
+
+def cannot_serve(python: str, run: Path) -> str:
+    """Why ``run`` cannot be served yet with the backend's ``python`` ("" where it can): the
+    live view's and NeRF in Renders' answer to a press."""
+    if not python:
+        return "no backend Python: press Set Up Backend, or choose one in the preferences"
+    if not (Path(run) / CHECKPOINT_NAME).is_file():
+        return f"{run}: no checkpoint yet: train first (a run still training is served from its first checkpoint)"
+    return ""
 
 
 def frames_parent() -> str | None:

@@ -24,9 +24,9 @@ import numpy as np
 
 from nerf_contract.run_layout import CHECKPOINT_NAME
 
-from . import sources
-from .composite_pixels import EMPTY_DEPTH, compositor_pixels
-from .live_view import LiveViewClient
+from ..core import sources
+from ..core.composite_pixels import compositor_pixels, empty_pixels, render_size
+from ..core.live_view import LiveViewClient
 from .paths import backend_python
 from .viewport_overlay import placement
 
@@ -84,8 +84,7 @@ def _linear_colour_space() -> str:
 
 def _render_size(scene) -> tuple[int, int]:
     render = scene.render
-    return (max(1, render.resolution_x * render.resolution_percentage // 100),
-            max(1, render.resolution_y * render.resolution_percentage // 100))
+    return render_size(render.resolution_x, render.resolution_y, render.resolution_percentage)
 
 
 def set_up(scene) -> None:
@@ -154,11 +153,9 @@ def _write(image, pixels: np.ndarray) -> None:
 def clear_images(scene) -> None:
     """Both images at the render's size, empty: the scene alone."""
     width, height = _render_size(scene)
-    empty = np.zeros(width * height * 4, np.float32)
-    _write(_image(COLOUR_IMAGE, width, height), empty)
-    far = np.full((width * height, 4), EMPTY_DEPTH, np.float32)
-    far[:, 3] = 1.0
-    _write(_image(DEPTH_IMAGE, width, height), far.ravel())
+    colour, depth = empty_pixels(width, height)
+    _write(_image(COLOUR_IMAGE, width, height), colour)
+    _write(_image(DEPTH_IMAGE, width, height), depth)
 
 
 # --- the render handlers -------------------------------------------------------------------
