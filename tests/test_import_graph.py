@@ -204,7 +204,6 @@ DEFERRED_IMPORTS = {
     "nerf_backend.core.files": {"OpenEXR"},  # only depth files need it
     "nerf_backend.core.plotting": {"matplotlib", "matplotlib.pyplot"},  # half a second; pictures only
     "nerf_backend.metrics.geometry": {"scipy.spatial"},  # a quarter second; geometry scores only
-    "nerf_backend.evaluation.geometry_eval": {"scipy.spatial"},  # as above
     "nerf_backend.bench.tables": {"matplotlib.lines", "matplotlib.patches"},
     "nerf_backend.data.run_folder": {"fcntl", "msvcrt"},  # one per platform
     "datasets_gen.core.progress": {"tqdm"},  # optional: Blender's own Python lacks it
