@@ -12,11 +12,12 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from filelock import FileLock
+from filelock import FileLock, Timeout
 
 # The tests run the backend in their own processes too (train(), evaluate_run()...), where
 # nerf_backend/__main__.py's sleeping OpenMP threads are not set: under pytest-xdist's two
@@ -56,6 +57,8 @@ def run_python(*args: str, timeout: float = 900, check: bool = True, **kwargs) -
 FIXTURE_CACHE = Path(os.environ.get("NERF_TEST_CACHE") or Path.home() / ".cache" / "nerf-from-blender" / "test-fixtures")
 # What a fixture's files depend on besides its own settings: the code that makes them.
 CODE_FOLDERS = ("nerf_backend", "datasets_gen", "nerf_contract")
+# A fixture's key unused this long is removed when the fixture is next made under another key.
+STALE_AFTER_S = 24 * 3600
 
 
 @functools.cache
@@ -80,9 +83,11 @@ def cached_fixture(name: str, settings: list[str], make: Callable[[Path], None])
     """The folder ``make(folder)`` fills, kept in FIXTURE_CACHE under a key of ``settings`` and
     ``code_digest()``: made once, by whichever process (pytest-xdist's workers, a second
     ``make test``) asks first under the key's file lock, and reused while the code and settings
-    stay the same. A maker that failed leaves no ``.done`` mark, so the next one starts afresh;
-    making a key removes the same fixture's other keys. Read it, never write into it:
-    ``own_copy`` gives a test session its own."""
+    stay the same. A maker that failed leaves no ``.done`` mark, so the next one starts afresh.
+    Each use marks the key as used; making a key removes the same fixture's keys unused for
+    STALE_AFTER_S (not sooner: two checkouts of different code testing at once each use their
+    own key, and one removing the other's while it was being copied failed the other's tests).
+    Read it, never write into it: ``own_copy`` gives a test session its own."""
     key = hashlib.sha256("\0".join([code_digest(), name, *settings]).encode()).hexdigest()[:16]
     FIXTURE_CACHE.mkdir(parents=True, exist_ok=True)
     folder = FIXTURE_CACHE / f"{name}-{key}"
@@ -91,11 +96,15 @@ def cached_fixture(name: str, settings: list[str], make: Callable[[Path], None])
         if not (done.is_file() and folder.is_dir()):
             shutil.rmtree(folder, ignore_errors=True)
             make(folder)
-            done.touch()
             for stale in FIXTURE_CACHE.glob(f"{name}-*.done"):
-                if stale != done:
-                    stale.unlink(missing_ok=True)
-                    shutil.rmtree(stale.with_suffix(""), ignore_errors=True)
+                if stale != done and time.time() - stale.stat().st_mtime > STALE_AFTER_S:
+                    try:  # and not while another session holds it
+                        with FileLock(str(stale.with_suffix(".lock")), timeout=0):
+                            stale.unlink(missing_ok=True)
+                            shutil.rmtree(stale.with_suffix(""), ignore_errors=True)
+                    except Timeout:
+                        pass
+        done.touch()
     return folder
 
 
@@ -155,8 +164,8 @@ def trained_marched_run(tiny_demo_source, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def trained_surface_run(tiny_demo_source, tmp_path_factory) -> Path:
-    """The surface preset trained for 600 steps on the tiny demo dataset (from its prior)."""
-    return _trained(tmp_path_factory, tiny_demo_source, "surface_run", "--preset", "surface", "--iters", "600")
+    """The surface preset trained for 400 steps on the tiny demo dataset (from its prior)."""
+    return _trained(tmp_path_factory, tiny_demo_source, "surface_run", "--preset", "surface", "--iters", "400")
 
 
 def camera_path_through_test_views(dataset: Path, folder: Path, repeats: int = 1, copy_images: bool = True) -> tuple:

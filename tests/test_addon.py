@@ -121,7 +121,10 @@ def session(request, extension_zip, tmp_path_factory):
         result = run_in_blender(request.param, REPO_ROOT / "tests" / "blender_scripts" / "addon_session.py",
                                 [str(extension_zip), str(work), str(report)], work,
                                 extra_paths=(extension_zip.parent, SHARED_DIR.resolve()),
-                                env={"NERF_TEST_SCENE": str(scene.resolve())})
+                                # Blender's user folders in the test's own: the wheel the zip
+                                # ships is installed there, not where another session's is.
+                                env={"NERF_TEST_SCENE": str(scene.resolve()),
+                                     "BLENDER_USER_RESOURCES": str(work / "blender-user")})
     except RuntimeError as error:  # a chroot or a venv that cannot be made here
         if os.environ.get("NERF_REQUIRE_BLENDER"):
             pytest.fail(f"Blender {request.param} cannot be set up: {error}")
