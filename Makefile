@@ -26,7 +26,7 @@ $(STAMP): requirements-dev.txt pyproject.toml nerf_backend/requirements-no-deps.
 demo: $(STAMP)
 	$(PY) -m nerf_backend.demo --out $(DEMO_DIR)
 
-# The default suite (10 minutes on 2 cores of an AVX-512 Xeon at 7441812, about twice that on AVX2;
+# The default suite (9 minutes on 2 cores of an AVX-512 Xeon at 93e0d82, about twice that on AVX2;
 # docs/testing.md has the profile); pytest lists the 15 slowest
 # tests at the end. Exit code 5 (no tests ran) fails. Two workers (pytest-xdist), a test file
 # each at a time: most tests train small models whose steps are bound by Python's overhead on
