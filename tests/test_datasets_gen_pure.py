@@ -29,7 +29,7 @@ from datasets_gen.core.frame_fit import (
     view_half_angle,
 )
 from datasets_gen.core.intrinsics import CameraSettings, ray_length_factors
-from datasets_gen.core.materials import choose_output_node, classify_material
+from datasets_gen.core.materials import appearance_facts, choose_output_node, classify_material
 from datasets_gen.core.options import (
     DEFAULT_OPTIONS,
     SETTINGS,
@@ -200,7 +200,8 @@ def principled(**inputs) -> dict:
                "Sheen Weight": 0.0, "Alpha": 1.0}
     sockets.update(inputs)
     return {"name": "Principled BSDF", "type": "BSDF_PRINCIPLED",
-            "inputs": {name: ({"value": None, "linked": True} if value == "linked" else {"value": value, "linked": False})
+            "inputs": {name: (value if isinstance(value, dict) else {"value": None, "linked": True}
+                              if value == "linked" else {"value": value, "linked": False})
                        for name, value in sockets.items()}}
 
 
@@ -256,6 +257,41 @@ def test_material_classification(nodes, view_dependent, transparent, reason) -> 
     if reason:
         assert any(reason in text for text in verdict.reasons + verdict.transparency_reasons)
     assert verdict.record()["objects"] == ["Cube"]
+
+
+def test_appearance_facts_hold_each_constant_input_and_say_why_one_varies() -> None:
+    texture = {"value": None, "linked": True, "from": {"type": "TEX_NOISE", "label": "Noise Texture", "name": "N"}}
+    facts = appearance_facts({"uses_nodes": True, "nodes": [
+        principled(Metallic=1.0, Roughness=0.1, **{"Coat Roughness": texture}), node("BSDF_GLOSSY", "Gloss")]})
+    assert facts["shader"] == "principled" and facts["other_shaders"] == ["glossy BSDF 'Gloss'"]
+    inputs = facts["inputs"]
+    # 0.1 as Blender's float32 holds it, read back as six digits.
+    assert inputs["metallic"] == {"value": 1.0} and inputs["roughness"] == {"value": 0.1}
+    assert inputs["coat_roughness"] == {"varies": "driven by the Noise Texture node 'N'"}
+    assert inputs["transmission"] == {"value": 0.0} and inputs["alpha"] == {"value": 1.0}
+    assert "thin_film_thickness" not in inputs  # a socket the node does not have (Blender < 4.2)
+
+
+@pytest.mark.parametrize(("sockets", "fact"), [
+    ([{"value": 0.2, "linked": False}, {"value": 0.2, "linked": False}], {"value": 0.2}),
+    ([{"value": 0.2, "linked": False}, {"value": 0.7, "linked": False}], {"varies": "2 Principled BSDFs hold 0.2, 0.7"}),
+    ([{"value": None, "linked": True}], {"varies": "driven by a link"}),
+    ([{"value": None, "linked": True, "from": {"type": "GROUP_INPUT", "name": "Group Input"}}],
+     {"varies": "driven by a node group's input"}),
+])
+def test_an_input_over_several_principled_bsdfs_is_one_value_or_varies(sockets, fact) -> None:
+    nodes = [{"name": f"P{i}", "type": "BSDF_PRINCIPLED", "inputs": {"Roughness": socket}}
+             for i, socket in enumerate(sockets)]
+    assert appearance_facts({"uses_nodes": True, "nodes": nodes})["inputs"]["roughness"] == fact
+
+
+def test_a_material_without_nodes_or_principled_bsdf_says_so() -> None:
+    assert appearance_facts({"uses_nodes": False, "nodes": []}) == {"shader": "default", "inputs": {},
+                                                                     "other_shaders": []}
+    facts = appearance_facts({"uses_nodes": True, "nodes": [node("BSDF_DIFFUSE", "D"), node("EMISSION", "E")]})
+    assert facts == {"shader": "other", "inputs": {}, "other_shaders": ["diffuse BSDF 'D'", "emission 'E'"]}
+    assert classify_material(material(principled(Metallic=0.5))).record()["appearance"]["inputs"]["metallic"] == \
+        {"value": 0.5}
 
 
 def test_cycles_output_node_choice_follows_blender() -> None:

@@ -357,6 +357,31 @@ def test_shared_20_specular_profile_flags_its_spheres(shared_scenes: Path) -> No
     assert any("specular" in reason for m in spheres for reason in m["reasons"])
 
 
+def test_material_facts_are_read_from_the_node_trees(tmp_path: Path) -> None:
+    """What each sphere of materials.blend is made of, in its scene profile: constants read from
+    the Principled BSDF, a texture's and a node group's inputs named as the reason they vary."""
+    result = subprocess.run([sys.executable, str(SCRIPTS / "make_scenes.py"), str(tmp_path), "materials"],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    profile = check_json(run_module(str(tmp_path / "materials.blend"), "--check"))
+    facts = {m["name"]: m["appearance"] for m in profile["materials"]}
+    assert {m["name"]: m["objects"] for m in profile["materials"]}["Metal"] == ["MetalBall"]
+    glass, metal, film = (facts[name]["inputs"] for name in ("Glass", "Metal", "Film"))
+    assert glass["transmission"] == {"value": 1.0} and glass["roughness"] == {"value": 0.0}
+    assert glass["ior"] == {"value": 1.5}
+    # No emission: a new Principled BSDF's colour is white and its strength 0 (Blender 4+).
+    assert len(glass["emission_colour"]["value"]) == 3 and glass["emission_strength"] == {"value": 0.0}
+    assert metal["metallic"] == {"value": 1.0}
+    assert metal["roughness"] == {"varies": "driven by the Noise Texture node 'Scratches'"}  # through a reroute
+    assert film["thin_film_thickness"] == {"value": 500.0} and film["thin_film_ior"] == {"value": 1.33}
+    assert film["roughness"] == {"value": 0.1}
+    grouped = facts["Grouped"]["inputs"]
+    assert grouped["roughness"] == {"varies": "driven by a node group's input"} and grouped["coat"] == {"value": 0.8}
+    assert facts["Mixed"]["other_shaders"] == ["glossy BSDF 'Sheen layer'", "mix shader 'Mix Shader'"]
+    assert facts["Mixed"]["inputs"]["roughness"] == {"value": 0.2}
+    assert facts["Chalk"] == {"shader": "other", "inputs": {}, "other_shaders": ["diffuse BSDF 'Diffuse BSDF'"]}
+
+
 def test_shared_robot_is_refused_then_rendered_with_allow_missing(tmp_path: Path, shared_scenes: Path) -> None:
     line = error_line(run_module("../shared/scenes/RobotExpressive.blend", "--out", str(tmp_path / "o"), *TINY))
     assert "Texture.png" in line and "missing image file" in line and "--allow-missing" in line

@@ -91,19 +91,37 @@ def _linked_blocks(library: "bpy.types.Library") -> Iterable["bpy.types.ID"]:
 
 
 def _socket_value(socket: "bpy.types.NodeSocket") -> Any:
+    """A number, a colour's [r, g, b], or None (a shader, a vector)."""
     if socket.type in _SCALAR_SOCKETS and hasattr(socket, "default_value"):
         return float(socket.default_value)
+    if socket.type == "RGBA" and hasattr(socket, "default_value"):
+        return [float(channel) for channel in socket.default_value[:3]]
     return None
+
+
+def _link_source(socket: "bpy.types.NodeSocket") -> Optional[dict]:
+    """The node a linked input's value comes from (through reroutes), named as Blender shows it."""
+    links = [link for link in socket.links if link.is_valid and not getattr(link, "is_muted", False)]
+    if not links:
+        return None
+    node = links[0].from_node
+    while node.type == "REROUTE" and node.inputs and node.inputs[0].links:
+        node = node.inputs[0].links[0].from_node
+    return {"type": node.type, "name": node.name, "label": node.bl_label}
+
+
+def _describe_input(socket: "bpy.types.NodeSocket") -> dict:
+    described = {"value": _socket_value(socket), "linked": bool(socket.is_linked)}
+    if socket.is_linked and (source := _link_source(socket)) is not None:
+        described["from"] = source
+    return described
 
 
 def _describe_node(node: "bpy.types.Node") -> dict:
     return {
         "name": node.name,
         "type": node.type,
-        "inputs": {
-            socket.name: {"value": _socket_value(socket), "linked": bool(socket.is_linked)}
-            for socket in node.inputs
-        },
+        "inputs": {socket.name: _describe_input(socket) for socket in node.inputs},
         "linked_outputs": [socket.name for socket in node.outputs if socket.is_linked],
     }
 

@@ -5,7 +5,10 @@ scene profile classifies each material that renders.  Blender-facing code (`scen
 describes a material as the shader nodes Cycles evaluates (reachable from the Cycles output,
 through groups), each with the inputs that matter (value, whether a link drives it) and which
 of its outputs are used; the decision here is pure and conservative: an input driven by a link
-(e.g. a texture) counts as non-zero.
+(e.g. a texture) counts as non-zero.  Beside the verdict, ``appearance_facts`` records what the
+surface is made of (the Principled BSDF's roughness, metallic, transmission, IOR, coat, sheen,
+thin film, emission and alpha): a value where the node tree makes it constant, and why not
+where it does not.
 
 Covers Blender 3.x and 4.x+ socket names ("Specular" -> "Specular IOR Level", "Clearcoat" ->
 "Coat Weight", "Sheen" -> "Sheen Weight", "Transmission" -> "Transmission Weight").
@@ -58,6 +61,30 @@ TRANSPARENT_NODES = {
 
 NO_MATERIAL = "(no material)"
 
+#: The Principled BSDF's inputs that shape a surface's appearance, as the scene profile's material
+#: facts name them: (fact, socket names across versions).  Blender 3.x has no thin film.
+APPEARANCE_INPUTS = (
+    ("roughness", ("Roughness",)),
+    ("metallic", ("Metallic",)),
+    ("specular", ("Specular IOR Level", "Specular")),
+    ("transmission", ("Transmission Weight", "Transmission")),
+    ("ior", ("IOR",)),
+    ("coat", ("Coat Weight", "Clearcoat")),
+    ("coat_roughness", ("Coat Roughness", "Clearcoat Roughness")),
+    ("sheen", ("Sheen Weight", "Sheen")),
+    ("thin_film_thickness", ("Thin Film Thickness",)),
+    ("thin_film_ior", ("Thin Film IOR",)),
+    ("emission_colour", ("Emission Color", "Emission")),
+    ("emission_strength", ("Emission Strength",)),
+    ("alpha", ("Alpha",)),
+)
+#: Shader nodes other than the Principled BSDF: what the facts say a material mixes in.
+OTHER_SHADERS = {
+    "BSDF_DIFFUSE": "diffuse BSDF", "EMISSION": "emission", "MIX_SHADER": "mix shader",
+    "ADD_SHADER": "add shader", "SUBSURFACE_SCATTERING": "subsurface scattering",
+    **VIEW_DEPENDENT_NODES, **TRANSPARENT_NODES,
+}
+
 
 @dataclass
 class MaterialProfile:
@@ -69,6 +96,8 @@ class MaterialProfile:
     transparent: bool = False
     transparency_reasons: list[str] = field(default_factory=list)
     objects: list[str] = field(default_factory=list)
+    #: What the surface is made of (``appearance_facts``).
+    appearance: dict[str, Any] = field(default_factory=dict)
 
     def record(self) -> dict[str, Any]:
         return asdict(self)
@@ -113,6 +142,67 @@ def _principled(node: Mapping[str, Any], profile: MaterialProfile) -> None:
         profile.transparency_reasons.append(f"{label}: alpha {_describe_input(alpha)}")
 
 
+def _source_label(socket: Mapping[str, Any]) -> str:
+    """What drives a linked input, in words: the node its link comes from, where known."""
+    source = socket.get("from")
+    if not source:
+        return "a link"
+    if source.get("type") == "GROUP_INPUT":
+        return "a node group's input"
+    kind = source.get("label") or source.get("type", "").lower().replace("_", " ")
+    return f"the {kind} node {source.get('name', '')!r}"
+
+
+def _input_fact(sockets: list[Mapping[str, Any]]) -> dict[str, Any]:
+    """One appearance input over a material's Principled BSDFs: its value where every one holds
+    the same constant, else why it varies."""
+    linked = [socket for socket in sockets if socket.get("linked")]
+    if linked:
+        return {"varies": f"driven by {_source_label(linked[0])}"}
+    values = sorted({_six_digits(socket.get("value")) for socket in sockets}, key=str)
+    if len(values) == 1:
+        return {"value": list(values[0]) if isinstance(values[0], tuple) else values[0]}
+    return {"varies": f"{len(sockets)} Principled BSDFs hold {', '.join(f'{v}' for v in values)}"}
+
+
+def _six_digits(value: Any) -> Any:
+    """A socket's number, or a colour's tuple of them, to the six digits Blender's float32 holds
+    (0.1 is read back as 0.10000000149)."""
+    if isinstance(value, (list, tuple)):
+        return tuple(_six_digits(channel) for channel in value)
+    return float(f"{float(value or 0.0):.6g}")
+
+
+def appearance_facts(description: Mapping[str, Any]) -> dict[str, Any]:
+    """What a material's surface is made of, from the nodes Cycles evaluates (the description's
+    shape: see the module docstring): each of APPEARANCE_INPUTS of its Principled BSDFs as
+    ``{"value": v}`` where the node tree makes it constant, or ``{"varies": why}`` where a link
+    (a texture, a node group's input) or several BSDFs make it differ across the surface; the
+    other shader nodes it mixes in; and the shader: ``principled``, ``other`` (no Principled
+    BSDF) or ``default`` (no node tree: Cycles renders a plain diffuse surface).
+
+    Example:
+        >>> facts = appearance_facts({"uses_nodes": True, "nodes": [{"type": "BSDF_PRINCIPLED", "inputs": {
+        ...     "Roughness": {"value": 0.25, "linked": False},
+        ...     "Metallic": {"value": None, "linked": True,
+        ...                  "from": {"type": "TEX_IMAGE", "label": "Image Texture", "name": "Rust"}}}}]})
+        >>> facts["shader"], facts["inputs"]["roughness"], facts["inputs"]["metallic"]
+        ('principled', {'value': 0.25}, {'varies': "driven by the Image Texture node 'Rust'"})
+    """
+    nodes = list(description.get("nodes", ()))
+    if not description.get("uses_nodes", True):
+        return {"shader": "default", "inputs": {}, "other_shaders": []}
+    principled = [node for node in nodes if node.get("type") == "BSDF_PRINCIPLED"]
+    others = sorted({f"{OTHER_SHADERS[node['type']]} {node.get('name', '')!r}"
+                     for node in nodes if node.get("type") in OTHER_SHADERS})
+    inputs = {}
+    for fact, names in APPEARANCE_INPUTS:
+        sockets = [socket for node in principled if (socket := _input(node, names)) is not None]
+        if sockets:
+            inputs[fact] = _input_fact(sockets)
+    return {"shader": "principled" if principled else "other", "inputs": inputs, "other_shaders": others}
+
+
 def classify_material(description: Mapping[str, Any]) -> MaterialProfile:
     """Classify one material description (see the module docstring for its shape).
 
@@ -137,6 +227,7 @@ def classify_material(description: Mapping[str, Any]) -> MaterialProfile:
             profile.transparency_reasons.append(f"{TRANSPARENT_NODES[node_type]} {node.get('name', '')!r}")
     profile.view_dependent = bool(profile.reasons)
     profile.transparent = bool(profile.transparency_reasons)
+    profile.appearance = appearance_facts(description)
     return profile
 
 

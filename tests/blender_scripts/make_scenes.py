@@ -20,6 +20,11 @@ for a kind of real-world file the generator must handle (see tests/test_datasets
                             only for render (viewport level 0), a ball with particle hair, a ball
                             with true displacement, one whose displacement scale is linked (unreadable),
                             and hair curves (a CURVES object, which to_mesh cannot measure)
+    materials.blend         a row of spheres, each of one material the scene profile's facts must read:
+                            glass, metal whose roughness a Noise Texture drives (through a reroute),
+                            a thin-film coat, a Principled BSDF inside a node group whose roughness is
+                            the group's input, a Principled BSDF mixed with a Glossy BSDF, and a plain
+                            diffuse one
 """
 
 from __future__ import annotations
@@ -294,6 +299,66 @@ def displacing_material(name: str, linked_scale: bool) -> bpy.types.Material:
     return mat
 
 
+def principled_material(name: str, **inputs) -> tuple[bpy.types.Material, bpy.types.Node]:
+    """A material of one Principled BSDF with ``inputs`` (socket name with spaces as _) set."""
+    mat = bpy.data.materials.new(name)
+    if mat.node_tree is None:
+        mat.use_nodes = True
+    nodes = mat.node_tree.nodes
+    shader = next(n for n in nodes if n.type == "BSDF_PRINCIPLED")
+    for key, value in inputs.items():
+        shader.inputs[key.replace("_", " ")].default_value = value
+    return mat, shader
+
+
+def materials(out_dir: str) -> None:
+    scene = reset()
+    world(scene)
+    sun(scene)
+    made = []
+    made.append(principled_material("Glass", Transmission_Weight=1.0, Roughness=0.0, IOR=1.5)[0])
+    metal, shader = principled_material("Metal", Metallic=1.0)
+    noise = metal.node_tree.nodes.new("ShaderNodeTexNoise")
+    noise.name = "Scratches"
+    reroute = metal.node_tree.nodes.new("NodeReroute")
+    metal.node_tree.links.new(noise.outputs["Fac"], reroute.inputs[0])
+    metal.node_tree.links.new(reroute.outputs[0], shader.inputs["Roughness"])
+    made.append(metal)
+    made.append(principled_material("Film", Roughness=0.1, Thin_Film_Thickness=500.0, Thin_Film_IOR=1.33)[0])
+    grouped = bpy.data.materials.new("Grouped")
+    if grouped.node_tree is None:
+        grouped.use_nodes = True
+    for node in list(grouped.node_tree.nodes):
+        if node.type != "OUTPUT_MATERIAL":
+            grouped.node_tree.nodes.remove(node)
+    group = bpy.data.node_groups.new("Coated", "ShaderNodeTree")
+    group.interface.new_socket("Roughness", in_out="INPUT", socket_type="NodeSocketFloat")
+    group.interface.new_socket("Shader", in_out="OUTPUT", socket_type="NodeSocketShader")
+    inside = group.nodes.new("ShaderNodeBsdfPrincipled")
+    inside.inputs["Coat Weight"].default_value = 0.8
+    group.links.new(group.nodes.new("NodeGroupInput").outputs["Roughness"], inside.inputs["Roughness"])
+    group.links.new(inside.outputs[0], group.nodes.new("NodeGroupOutput").inputs["Shader"])
+    instance = grouped.node_tree.nodes.new("ShaderNodeGroup")
+    instance.node_tree = group
+    instance.inputs["Roughness"].default_value = 0.3
+    output = next(n for n in grouped.node_tree.nodes if n.type == "OUTPUT_MATERIAL")
+    grouped.node_tree.links.new(instance.outputs[0], output.inputs["Surface"])
+    made.append(grouped)
+    mixed, shader = principled_material("Mixed", Roughness=0.2)
+    nodes, links = mixed.node_tree.nodes, mixed.node_tree.links
+    glossy, mix = nodes.new("ShaderNodeBsdfGlossy"), nodes.new("ShaderNodeMixShader")
+    glossy.name = "Sheen layer"
+    links.new(shader.outputs[0], mix.inputs[1])
+    links.new(glossy.outputs[0], mix.inputs[2])
+    links.new(mix.outputs[0], next(n for n in nodes if n.type == "OUTPUT_MATERIAL").inputs["Surface"])
+    made.append(mixed)
+    made.append(material("Chalk", (0.8, 0.8, 0.8)))
+    for index, mat in enumerate(made):
+        obj = mesh_object(scene, mat.name + "Ball", "small_sphere", 0.4, (1.0 * index - 2.5, 0.0, 0.0))
+        obj.data.materials.append(mat)
+    save(out_dir, "materials.blend")
+
+
 BUILDERS = {
     "missing_texture": missing_texture,
     "missing_library": missing_library,
@@ -305,6 +370,7 @@ BUILDERS = {
     "markers": markers,
     "sphere": sphere,
     "occupancy": occupancy,
+    "materials": materials,
 }
 
 
