@@ -1,7 +1,9 @@
 """Volume rendering along rays (the paper's Eq. 3), in the numerically stable form.
 
-Functions take per-sample tensors shaped ``[R, S]`` (R rays, S samples each) and are free of
-any model: the caller evaluates the field, these integrate it (the nerfacc split).
+Functions take per-sample tensors shaped ``[R, S]`` (R rays, S samples each), or samples
+packed per ray (``[N]`` with the ray of each, nerfacc's packed layout: only the samples that
+hold density, however many a ray has), and are free of any model: the caller evaluates the
+field, these integrate it (the nerfacc split).
 
 Transmittance is ``exp(-exclusive_cumsum(σ·δ))`` rather than ``cumprod(1 - α + ε)``: the
 sum never loses precision as opacity approaches 1, and there is no ε to bias empty rays.
@@ -51,3 +53,35 @@ def composite_rgb(weights: Tensor, rgb: Tensor, background: Tensor | float) -> T
 def expected_depth(weights: Tensor, t_mid: Tensor) -> Tensor:
     """Weight-averaged distance ``Σ w·t`` (not normalised: background contributes 0)."""
     return (weights * t_mid).sum(dim=-1)
+
+
+def render_weights_packed(density: Tensor, deltas: Tensor, ray: Tensor) -> tuple[Tensor, Tensor]:
+    """``render_weights`` for samples packed per ray: ``density [N]`` and ``deltas [N]`` of the
+    samples of rays ``ray [N]``, a ray's samples together and in order along it (ascending
+    ``ray``); samples left out between them hold no density, so they change nothing.
+
+    The optical depth in front of a sample is a running sum over every ray's samples less its
+    value at the ray's first one, summed in float64: in float32, a batch of opaque rays sums to
+    depths whose last digits are larger than a translucent sample's own.
+
+    Example:
+        >>> w, t = render_weights_packed(torch.tensor([1e9, 1.0, 0.5]), torch.ones(3), torch.tensor([0, 0, 1]))
+        >>> w.tolist()  # ray 0: its opaque first sample takes everything; ray 1: 1 - e^-0.5
+        [1.0, 0.0, 0.39346933364868164]
+    """
+    optical_depth = density * deltas
+    wide = optical_depth.double()
+    before = torch.cumsum(wide, 0) - wide
+    first = torch.searchsorted(ray, ray)  # each sample's ray's first sample
+    transmittance = torch.exp(-(before - before.index_select(0, first))).to(density.dtype)
+    return transmittance * -torch.expm1(-optical_depth), transmittance
+
+
+def sum_per_ray(values: Tensor, ray: Tensor, rays: int) -> Tensor:
+    """Σ over each ray's packed samples: ``values [N, ...]`` of rays ``ray [N]`` → ``[rays, ...]``.
+
+    Example:
+        >>> sum_per_ray(torch.tensor([0.5, 0.25, 1.0]), torch.tensor([0, 0, 2]), 3).tolist()
+        [0.75, 0.0, 1.0]
+    """
+    return values.new_zeros((rays, *values.shape[1:])).index_add(0, ray, values)
