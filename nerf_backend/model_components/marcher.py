@@ -133,7 +133,8 @@ def render_marched(
     """Render rays marched in ``steps`` fixed steps of ``step`` from ``t_near`` (cut at
     ``t_far``), with gradients through ``field_fn``. ``lit_fn``, where given, finds the samples
     that count in one pass of its own (the compiled march of the grid field on the CPU) instead
-    of the tensors of every step below.
+    of the tensors of every step below, and the rest works on those samples alone, packed per
+    ray (``_render_lit``); its output then has no per-step ``weights`` or ``t_edges``.
 
     Samples in empty cells are dropped, then those hidden behind opaque ones (found with
     ``density_fn``, without gradients: it may be a cheaper form of the same density); only
