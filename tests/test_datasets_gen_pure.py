@@ -290,6 +290,9 @@ def test_a_material_without_nodes_or_principled_bsdf_says_so() -> None:
                                                                      "other_shaders": []}
     facts = appearance_facts({"uses_nodes": True, "nodes": [node("BSDF_DIFFUSE", "D"), node("EMISSION", "E")]})
     assert facts == {"shader": "other", "inputs": {}, "other_shaders": ["diffuse BSDF 'D'", "emission 'E'"]}
+    # A Layer Weight or Fresnel node feeds a shader's input: it is no shader mixed in.
+    assert appearance_facts({"uses_nodes": True, "nodes": [principled(), node("LAYER_WEIGHT", "L"),
+                                                            node("FRESNEL", "F")]})["other_shaders"] == []
     assert classify_material(material(principled(Metallic=0.5))).record()["appearance"]["inputs"]["metallic"] == \
         {"value": 0.5}
 

@@ -78,11 +78,13 @@ APPEARANCE_INPUTS = (
     ("emission_strength", ("Emission Strength",)),
     ("alpha", ("Alpha",)),
 )
-#: Shader nodes other than the Principled BSDF: what the facts say a material mixes in.
+#: Shader nodes other than the Principled BSDF: what the facts say a material mixes in (the
+#: view-dependent and transparent ones above, but for Fresnel and Layer Weight, which are inputs).
 OTHER_SHADERS = {
     "BSDF_DIFFUSE": "diffuse BSDF", "EMISSION": "emission", "MIX_SHADER": "mix shader",
     "ADD_SHADER": "add shader", "SUBSURFACE_SCATTERING": "subsurface scattering",
-    **VIEW_DEPENDENT_NODES, **TRANSPARENT_NODES,
+    **{kind: label for kind, label in VIEW_DEPENDENT_NODES.items() if kind not in ("FRESNEL", "LAYER_WEIGHT")},
+    **TRANSPARENT_NODES,
 }
 
 

@@ -92,8 +92,14 @@ def march_edges(t_near: Tensor, t_far: Tensor, step: float, offset: Tensor, firs
         [[1.0, 1.0, 1.100000023841858, 1.2000000476837158]]
     """
     steps = torch.arange(first, first + count + 1, device=t_near.device, dtype=t_near.dtype)
-    t_edges = t_near[:, None] + (steps[None, :] - 1.0 + offset).clamp_min(0.0) * step
-    return torch.minimum(t_edges, t_far[:, None])
+    return edge_at(steps[None, :], t_near[:, None], t_far[:, None], step, offset)
+
+
+def edge_at(edge: Tensor, t_near: Tensor, t_far: Tensor, step: float, offset: Tensor) -> Tensor:
+    """Where march edge number ``edge`` (a float tensor) lies along its ray: ``t_near`` plus
+    ``edge - 1 + offset`` steps (edge 0 and 1 both at ``t_near`` when ``offset`` is 0), cut at
+    ``t_far``; the arguments broadcast. ``march_edges`` and ``lit_intervals`` both place edges here."""
+    return torch.minimum(t_near + (edge - 1.0 + offset).clamp_min(0.0) * step, t_far)
 
 
 # The helpers gather samples by flat index (one nonzero() per mask), which on the CPU costs
@@ -173,8 +179,8 @@ def render_marched(
 def lit_intervals(lit: Tensor, t_near: Tensor, t_far: Tensor, step: float, steps: int,
                   offset: Tensor) -> tuple[Tensor, Tensor]:
     """The start and end along its ray of each packed march interval ``lit [N]`` (flat indices
-    ``ray · steps + u``): ``march_edges``' edges ``u`` and ``u + 1``, the same float operations
-    on the samples alone.
+    ``ray · steps + u``): ``march_edges``' edges ``u`` and ``u + 1`` (``edge_at``), for the
+    samples alone.
 
     Example:
         >>> lo, hi = lit_intervals(torch.tensor([1, 2]), torch.tensor([1.0]), torch.tensor([1.25]), 0.1, 3,
@@ -184,9 +190,7 @@ def lit_intervals(lit: Tensor, t_near: Tensor, t_far: Tensor, step: float, steps
     """
     ray, u = lit // steps, (lit % steps).to(t_near.dtype)
     near, far, shift = t_near.index_select(0, ray), t_far.index_select(0, ray), offset[:, 0].index_select(0, ray)
-    low = torch.minimum(near + (u - 1.0 + shift).clamp_min(0.0) * step, far)
-    high = torch.minimum(near + (u + shift).clamp_min(0.0) * step, far)
-    return low, high
+    return edge_at(u, near, far, step, shift), edge_at(u + 1.0, near, far, step, shift)
 
 
 def _render_lit(origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor,
