@@ -357,6 +357,9 @@ class _Ball(torch.nn.Module):
     def forward(self, x, d):
         return self.density(x), self.colour(x, d)
 
+    def shade_fn(self):  # its samples carry colours (no deferred colour)
+        return None
+
     # The grid model's no-gradient reads go through a density volume; the ball has none.
     def density_volume(self):
         return None

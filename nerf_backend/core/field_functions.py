@@ -27,6 +27,10 @@ SeenColourFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
 # the rays the function was made for (``MarchableField.ray_colour(directions)``), so work that
 # is the same for every sample of a ray is done once a ray.
 RayColourFn = Callable[[Tensor, Tensor], Tensor]
+# shade(features [R, C], directions [R, 3]) -> [R, 3]: deferred colour (SNeRG's idea): a ray's
+# colour from its samples' appearance features composited along it (their weighted mean), seen
+# along the ray's direction: the colour network runs once a ray, not once a sample.
+ShadeFn = Callable[[Tensor, Tensor], Tensor]
 # lit(origins [R, 3], directions [R, 3], t_near [R], t_far [R], offset [R, 1]) -> (flat indices [L]
 # (ray · steps + step) of a training march's samples in occupied cells that light still reaches,
 # sorted by ray, then along it; their weights [L] without gradients): a march that finds them in

@@ -98,6 +98,58 @@ class CompiledRayColour:
         return rgb
 
 
+class CompiledRayFeatures:
+    """Deferred colour's ``RayColourFn`` for inference: packed samples' appearance features
+    ``[P, F]`` (``GridAppearance.ray_features``), and ``composite`` adding each sample's
+    weighted features into its ray's row in one compiled pass (no ``[P, F]`` tensor)."""
+
+    def __init__(self, field, library: ctypes.CDLL) -> None:
+        grid = field.appearance_grid
+        self._field = field
+        with torch.no_grad():
+            self._tables = [_rows_in_place(p) for pair in zip(grid.planes, grid.lines) for p in pair]
+            box_min = field.box_min.float().tolist()
+            scale = (2.0 / (field.box_max - field.box_min).float()).tolist()
+        network = _ColourNetwork()
+        network.grid = _components([grid], self._tables, None, None, None, None)
+        network.box_min = (ctypes.c_float * 3)(*box_min)
+        network.scale = (ctypes.c_float * 3)(*scale)
+        network.features, network.hidden = grid.out_dims, COMPILED_WIDTH
+        self._network = network
+        self._library = library
+        self.channels = grid.out_dims
+
+    @torch.no_grad()
+    def __call__(self, x: Tensor, ray: Tensor) -> Tensor:
+        return self._field.appearance_grid(self._field.normalise(x)).float()
+
+    def composite(self, x: Tensor, ray: Tensor, weight: Tensor, out: Tensor) -> None:
+        """``out[ray] += weight · features(x)`` for samples whose ``ray`` ascends; ``out [R, F]``
+        float32 and contiguous."""
+        x, ray, weight = x.float().contiguous(), ray.to(torch.int64).contiguous(), weight.float().contiguous()
+        status = self._library.composite_samples(
+            ctypes.byref(self._network), ctypes.c_void_p(x.data_ptr()), ctypes.c_void_p(ray.data_ptr()),
+            ctypes.c_void_p(weight.data_ptr()), ctypes.c_int64(x.shape[0]), ctypes.c_void_p(out.data_ptr()),
+            ctypes.c_int64(torch.get_num_threads()))
+        if status != 0:  # compiled_ray_features only builds it for a grid the pass reads
+            raise RuntimeError(f"colour_network.h refused the call (status {status})")
+
+
+def compiled_ray_features(field) -> CompiledRayFeatures | None:
+    """The compiled compositing of ``field``'s appearance features (a ``GridAppearance``), or
+    None where it does not apply (not on the CPU in float32, channels not whole vectors, no C
+    compiler)."""
+    grid = field.appearance_grid
+    if grid.channels % CHANNEL_BLOCK or any(p.dtype != torch.float32 or p.device.type != "cpu"
+                                            for p in grid.parameters()):
+        return None
+    library = compiled_grid_library()
+    if library is None:
+        return None
+    library.composite_samples.restype = ctypes.c_int
+    return CompiledRayFeatures(field, library)
+
+
 def colour_precision() -> int | None:
     """The bits of the floats the compiled pass multiplies its two wide layers in: 16
     (bfloat16, a CPU with AVX512-BF16) or 32; None where the pass is not built."""

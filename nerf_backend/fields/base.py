@@ -11,7 +11,7 @@ from typing import Callable, NamedTuple
 import torch
 from torch import Tensor, nn
 
-from ..core.field_functions import RayColourFn
+from ..core.field_functions import RayColourFn, ShadeFn
 from ..core.scene_bounds import SceneBounds
 
 
@@ -120,6 +120,17 @@ class MarchableField(nn.Module):
         once a ray here; one whose colour is a network may run its products in ``dtype``
         (``devices.colour_network_dtype``)."""
         return lambda x, ray: self.colour(x, directions.index_select(0, ray))
+
+    def shade_fn(self) -> ShadeFn | None:
+        """Deferred colour: where marched samples carry appearance features (``forward``'s second
+        output, ``ray_features``) rather than colours, the function giving a ray its colour
+        from their weighted mean (``volume_rendering.shade_rays``); None where they carry colours."""
+        return None
+
+    def ray_features(self, directions: Tensor) -> RayColourFn:
+        """With deferred colour, ``ray_colour``'s counterpart giving packed samples' appearance
+        features ``[P, C]`` for ``shade_fn``."""
+        raise NotImplementedError(f"{type(self).__name__} has no deferred colour")
 
     def forward(self, x: Tensor, directions: Tensor, coloured: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Density and colour of the same points in one call (a field that shares work

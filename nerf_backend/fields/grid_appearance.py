@@ -9,8 +9,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..core.field_functions import RayColourFn
-from ..field_components.compiled_colour import compiled_ray_colour
+from ..core.field_functions import RayColourFn, ShadeFn
+from ..field_components.compiled_colour import compiled_ray_colour, compiled_ray_features
 from ..field_components.encodings import PositionalEncoding
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
 from .base import SampleCost, mlp_flops
@@ -19,7 +19,13 @@ from .base import SampleCost, mlp_flops
 class GridAppearance:
     """Mixed into a ``MarchableField``: ``build_appearance`` in its ``__init__``, then
     ``colour(x, d)``. The viewing direction's encoding is an input only when the config is
-    view-dependent."""
+    view-dependent.
+
+    With ``deferred_colour`` in the config (SNeRG's deferred shading), the marched samples carry
+    the appearance grid's features, not colours (``sample_appearance``); the march composites
+    them along each ray and ``shade_fn`` runs the basis and the network once a ray on their
+    weighted mean. The basis is linear, so compositing the grid's features before it is the
+    same as after. A single point's ``colour`` is the network on its own features, as before."""
 
     def build_appearance(self, config, vertices: Vertices, extra_inputs: int = 0) -> None:
         """The appearance grid and MLP; ``extra_inputs``: features of the field's own that
@@ -37,6 +43,27 @@ class GridAppearance:
 
     def colour(self, x: Tensor, directions: Tensor) -> Tensor:
         return self.colour_with(x, directions)
+
+    @property
+    def deferred(self) -> bool:
+        """Whether marched samples carry appearance features, shaded once a ray (``shade_fn``)."""
+        return bool(getattr(self.config, "deferred_colour", False))
+
+    def shade_fn(self) -> ShadeFn | None:
+        """``MarchableField.shade_fn``: the colour of a ray's mean appearance features."""
+        return self.colour_from_grid if self.deferred else None
+
+    def sample_appearance(self, grid_features: Tensor, directions: Tensor) -> Tensor:
+        """What a marched sample carries: its colour, or with deferred colour its features."""
+        return grid_features if self.deferred else self.colour_from_grid(grid_features, directions)
+
+    def ray_features(self, directions: Tensor) -> RayColourFn:
+        """``MarchableField.ray_features``: the appearance grid's features of packed samples
+        (on the CPU, with the compiled pass that composites them: ``compiled_ray_features``)."""
+        compiled = compiled_ray_features(self) if directions.device.type == "cpu" else None
+        if compiled is not None:
+            return compiled
+        return lambda x, ray: self.appearance_grid(self.normalise(x)).float()
 
     def colour_with(self, x: Tensor, directions: Tensor, extra: Tensor | None = None) -> Tensor:
         """``colour``, with the ``extra_inputs`` features given (``[P, extra_inputs]``)."""
@@ -93,6 +120,9 @@ class GridAppearance:
 
     def appearance_cost(self) -> SampleCost:
         """One colour sample: each channel of a component reads 4 plane and 2 line values, and
-        interpolating takes a multiply-add of each."""
+        interpolating takes a multiply-add of each; then the basis and the network, or with
+        deferred colour a multiply-add a feature into its ray's sum (the network runs once a ray)."""
         gathers = 3 * (4 + 2) * self.config.appearance_channels
+        if self.deferred:
+            return SampleCost(gathers, 2 * gathers + 2 * self.appearance_grid.out_dims)
         return SampleCost(gathers, 2 * gathers + mlp_flops(self.appearance_basis) + mlp_flops(self.colour_mlp))

@@ -50,6 +50,9 @@ class GridFieldConfig:
     hidden_width: int = 64
     view_dependent: bool = True
     direction_frequencies: int = 2
+    # Deferred colour (GridAppearance): the appearance features composited along each ray, the
+    # colour network run once a ray rather than once a sample.
+    deferred_colour: bool = False
     # σ = density_scale · softplus(feature + density_shift): TensoRF's parametrisation.
     density_shift: float = -10.0
     density_scale: float = 25.0
@@ -122,7 +125,8 @@ class GridField(VertexOccupancy, GridAppearance, MarchableField):
         return self.density_from_features(self.density_grid(self.normalise(x)).sum(dim=-1))
 
     def forward(self, x: Tensor, directions: Tensor, coloured: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """Density and colour of the same points (colour only at ``coloured``, where given),
+        """Density and colour of the same points (colour only at ``coloured``, where given; with
+        deferred colour, the appearance features instead: ``sample_appearance``),
         the grids read by the compiled kernel where it applies (training on the CPU:
         ``compiled_grid``; both grids in one pass when every point is coloured)."""
         normalised = self.normalise(x)
@@ -133,10 +137,10 @@ class GridField(VertexOccupancy, GridAppearance, MarchableField):
             density_features, appearance_features = features.split(
                 [self.density_grid.out_dims, self.appearance_grid.out_dims], dim=1)
             return (self.density_from_features(density_features.sum(dim=-1)),
-                    self.colour_from_grid(appearance_features, directions))
+                    self.sample_appearance(appearance_features, directions))
         density = self.density_from_features(self.density_grid(normalised).sum(dim=-1))
         shown = normalised.index_select(0, coloured)
-        return density, self.colour_from_grid(self.appearance_grid(shown), directions.index_select(0, coloured))
+        return density, self.sample_appearance(self.appearance_grid(shown), directions.index_select(0, coloured))
 
     def sample_cost(self) -> dict[str, SampleCost]:
         # Each channel of a component reads 4 plane and 2 line values, and interpolating

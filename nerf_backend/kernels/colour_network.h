@@ -256,6 +256,69 @@ int colour_samples(const ColourNetwork *net, const float *x, const int64_t *ray,
     return 0;
 }
 
+/* Deferred colour (GridAppearance's deferred_colour): no network a sample; each packed sample's
+ * appearance features, times its weight, added to its ray's row of out [rays, features]. The
+ * samples' rays ascend, and each thread takes a run of whole rays, so no two write one row. */
+typedef struct {
+    const ColourNetwork *net;  /* the grid and its box alone are read */
+    const float *x, *weight;
+    const int64_t *ray;
+    float *out;
+    int64_t begin, end;
+} FeatureWork;
+
+static void *feature_work(void *arg) {
+    const FeatureWork *w = (const FeatureWork *)arg;
+    const ColourNetwork *net = w->net;
+    const int32_t F = net->features;
+    float features[MAX_FEATURES];
+    for (int64_t p = w->begin; p < w->end; ++p) {
+        float normalised[3];
+        for (int a = 0; a < 3; ++a) normalised[a] = (w->x[3 * p + a] - net->box_min[a]) * net->scale[a] - 1.0f;
+        if (p + PREFETCH_AHEAD < w->end) {
+            float ahead[3];
+            for (int a = 0; a < 3; ++a)
+                ahead[a] = (w->x[3 * (p + PREFETCH_AHEAD) + a] - net->box_min[a]) * net->scale[a] - 1.0f;
+            for (int i = 0; i < 3; ++i) prefetch_rows(&net->grid[i], ahead, 0);
+        }
+        int32_t column = 0;
+        for (int i = 0; i < 3; ++i) {
+            forward_sample(&net->grid[i], normalised, features + column);
+            column += net->grid[i].channels;
+        }
+        float *row = w->out + w->ray[p] * F;
+        const float weight = w->weight[p];
+        for (int32_t k = 0; k < F; ++k) row[k] += weight * features[k];
+    }
+    return NULL;
+}
+
+/* out[ray[p]] += weight[p] · features(x[p]) for `points` samples (world space, rays ascending),
+ * on `threads` threads over runs of whole rays. 0, or below 0 where the grid is not one this
+ * pass reads. */
+int composite_samples(const ColourNetwork *net, const float *x, const int64_t *ray, const float *weight,
+                      int64_t points, float *out, int64_t threads) {
+    int32_t features = 0;
+    for (int i = 0; i < 3; ++i) {
+        if (net->grid[i].channels < 1 || net->grid[i].channels % BLOCK != 0) return -2;
+        features += net->grid[i].channels;
+    }
+    if (features != net->features || features > MAX_FEATURES) return -3;
+    threads = clamp_threads(threads, (points + 4095) / 4096);
+    FeatureWork work[MAX_THREADS];
+    int64_t begin = 0;
+    for (int64_t t = 0; t < threads; ++t) {
+        int64_t end = t == threads - 1 ? points : points * (t + 1) / threads;
+        while (end > begin && end < points && ray[end] == ray[end - 1]) ++end;  /* a ray stays whole */
+        if (end < begin) end = begin;
+        FeatureWork item = {net, x, weight, ray, out, begin, end};
+        work[t] = item;
+        begin = end;
+    }
+    run_all(feature_work, work, sizeof work[0], threads);
+    return 0;
+}
+
 /* 16 where the wide layers multiply in bfloat16, 32 where in float32. */
 int colour_precision(void) { return COLOUR_BF16 ? 16 : 32; }
 

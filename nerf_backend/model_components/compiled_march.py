@@ -35,12 +35,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.field_functions import RayColourFn
+from ..core.field_functions import RayColourFn, ShadeFn
 from ..core.stage_timer import count, stage
 from ..kernels.build import kernel_or_note, load_kernel
-from .marcher import EXACT_STOP, OPAQUE_TRANSMITTANCE, RayStop
+from .marcher import EXACT_STOP, OPAQUE_TRANSMITTANCE, RayStop, RayValues
 from .occupancy import OccupancyGrid
 from .render_output import RenderOutput
+from .volume_rendering import shade_rays
 
 ACTIVATIONS = {"softplus": 0, "laplace": 1, "neus": 2}  # march_render.c's ACTIVATION_*
 # Packed samples one call of the kernel may write (24 bytes each): bounds the memory of a chunk
@@ -100,13 +101,14 @@ def _pointer(tensor: Tensor) -> ctypes.c_void_p:
 def render_marched_compiled(
     origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, *, density: VolumeDensity,
     ray_colour: RayColourFn, occupancy: OccupancyGrid, step: float, steps: int, background: Tensor | float,
-    library: ctypes.CDLL, stop: RayStop = EXACT_STOP,
+    library: ctypes.CDLL, stop: RayStop = EXACT_STOP, shade_fn: ShadeFn | None = None,
 ) -> RenderOutput:
     """``render_marched_stopping_early``'s image, each ray marched by the compiled kernel: the
     skip grid's spans, then fine steps in occupied cells, the density read from
     ``density.volume``, a ray stopped once its transmittance is under
     ``stop.opaque_transmittance``, and up to ``stop.skipped_weight`` of its faintest weight
-    left to its mean colour."""
+    left to its mean colour; with ``shade_fn``, ``ray_colour`` gives appearance features, shaded
+    once a ray (deferred colour, ``shade_rays``)."""
     rays = origins.shape[0]
     as_float = {"dtype": torch.float32}
     origins, directions = origins.to(**as_float).contiguous(), directions.to(**as_float).contiguous()
@@ -131,7 +133,7 @@ def render_marched_compiled(
     sample_position = torch.empty((threads * region, 3), **as_float)
     sample_weight = torch.empty(threads * region, **as_float)
     written = torch.zeros(threads, dtype=torch.int64)
-    rgb = origins.new_zeros((rays, 3))
+    composited = RayValues(origins, rays)  # Σ w·colour (or features) of the coloured samples
     pending: Tensor | None = None  # the rays still to march (None: all)
     while pending is None or pending.numel() > 0:
         with stage("march", items=lambda: int(counters[0])):
@@ -148,14 +150,11 @@ def render_marched_compiled(
             for thread, kept_count in enumerate(kept):
                 for first in range(thread * region, thread * region + kept_count, COLOUR_BATCH):
                     part = slice(first, min(first + COLOUR_BATCH, thread * region + kept_count))
-                    ray = sample_ray[part]
-                    colour = ray_colour(sample_position[part], ray).to(torch.float32)
-                    rgb.index_add_(0, ray, sample_weight[part, None] * colour)
+                    composited.add_weighted(ray_colour, sample_position[part], sample_ray[part], sample_weight[part])
         pending = (done == 0).nonzero().squeeze(1)
     transmittance, depth, skipped, coloured_weight = per_ray
     # The skipped weight takes the coloured samples' weighted mean colour; a ray with none keeps it black.
-    mean_colour = rgb / coloured_weight.clamp_min(torch.finfo(rgb.dtype).tiny)[:, None]
-    rgb = rgb + torch.where(coloured_weight[:, None] > 0, mean_colour * skipped[:, None], 0.0)
+    rgb = shade_rays(composited.values, coloured_weight, coloured_weight + skipped, directions, shade_fn)
     return RenderOutput(rgb=rgb + transmittance[:, None] * background, depth=depth, opacity=1.0 - transmittance,
                         weights=None, t_edges=None)
 

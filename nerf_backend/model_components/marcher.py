@@ -32,13 +32,14 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.field_functions import FieldFn, LitSamplesFn, RayColourFn, SampleDensityFn, SparseColourFieldFn
+from ..core.field_functions import FieldFn, LitSamplesFn, RayColourFn, SampleDensityFn, ShadeFn, SparseColourFieldFn
 from ..core.stage_timer import count, stage
 from .occupancy import OccupancyGrid
 from .render_output import RenderOutput
 from .samplers import interval_midpoints
-from .volume_rendering import (accumulate, composite_rgb, expected_depth, render_weights, render_weights_packed,
-                               sum_per_ray)
+from .compiled_composite import compiled_composite_features
+from .volume_rendering import (accumulate, composite_features_packed, composite_rgb, expected_depth, render_weights,
+                               render_weights_packed, shade_rays, sum_per_ray)
 
 # A ray whose transmittance has fallen below this is opaque: what it would still add is under
 # 1e-4 of a pixel, so inference stops it and training evaluates no colour past that point.
@@ -134,13 +135,15 @@ def render_marched(
     origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, *, density_fn: SampleDensityFn,
     field_fn: FieldFn | SparseColourFieldFn, occupancy: OccupancyGrid, step: float, steps: int,
     background: Tensor | float,
-    offset: Tensor | None = None, lit_fn: LitSamplesFn | None = None,
+    offset: Tensor | None = None, lit_fn: LitSamplesFn | None = None, shade_fn: ShadeFn | None = None,
 ) -> RenderOutput:
     """Render rays marched in ``steps`` fixed steps of ``step`` from ``t_near`` (cut at
     ``t_far``), with gradients through ``field_fn``. ``lit_fn``, where given, finds the samples
     that count in one pass of its own (the compiled march of the grid field on the CPU) instead
     of the tensors of every step below, and the rest works on those samples alone, packed per
-    ray (``_render_lit``); its output then has no per-step ``weights`` or ``t_edges``.
+    ray (``_render_lit``); its output then has no per-step ``weights`` or ``t_edges``. With
+    ``shade_fn`` (deferred colour), ``field_fn``'s second output is appearance features, and
+    each ray's composited features are shaded once (``shade_rays``).
 
     Samples in empty cells are dropped, then those hidden behind opaque ones (found with
     ``density_fn``, without gradients: it may be a cheaper form of the same density); only
@@ -156,7 +159,8 @@ def render_marched(
     if offset is None:
         offset = origins.new_zeros((origins.shape[0], 1))
     if lit_fn is not None:
-        return _render_lit(origins, directions, t_near, t_far, field_fn, lit_fn, step, steps, background, offset)
+        return _render_lit(origins, directions, t_near, t_far, field_fn, lit_fn, step, steps, background, offset,
+                           shade_fn)
     with stage("march", items=origins.shape[0] * steps):
         t_edges = march_edges(t_near, t_far, step, offset, 0, steps)
         deltas = t_edges[:, 1:] - t_edges[:, :-1]
@@ -171,9 +175,16 @@ def render_marched(
     with stage("composite", items=lit.numel()):
         density = density_values.new_zeros(deltas.numel()).index_put((lit,), density_values).view(deltas.shape)
         weights, _ = render_weights(density, deltas)
-        rgb = colour_values.new_zeros((deltas.numel(), 3)).index_put((lit,), colour_values).view(*deltas.shape, 3)
-        return RenderOutput(rgb=composite_rgb(weights, rgb, background), depth=expected_depth(weights, t_mid),
-                            opacity=weights.sum(dim=-1), weights=weights, t_edges=t_edges, field_samples=lit.numel())
+        values = colour_values.new_zeros((deltas.numel(), colour_values.shape[1])).index_put((lit,), colour_values)
+        values = values.view(*deltas.shape, -1)
+        opacity = weights.sum(dim=-1)
+        if shade_fn is None:
+            rgb = composite_rgb(weights, values, background)
+        else:
+            rgb = (shade_rays(accumulate(weights, values), opacity, opacity, directions, shade_fn)
+                   + (1.0 - opacity)[:, None] * background)
+        return RenderOutput(rgb=rgb, depth=expected_depth(weights, t_mid), opacity=opacity, weights=weights,
+                            t_edges=t_edges, field_samples=lit.numel())
 
 
 def lit_intervals(lit: Tensor, t_near: Tensor, t_far: Tensor, step: float, steps: int,
@@ -195,7 +206,7 @@ def lit_intervals(lit: Tensor, t_near: Tensor, t_far: Tensor, step: float, steps
 
 def _render_lit(origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor,
                 field_fn: SparseColourFieldFn, lit_fn: LitSamplesFn, step: float, steps: int,
-                background: Tensor | float, offset: Tensor) -> RenderOutput:
+                background: Tensor | float, offset: Tensor, shade_fn: ShadeFn | None) -> RenderOutput:
     """``render_marched`` where ``lit_fn`` finds the lit samples: everything after it packed per
     ray, over those samples alone. The march's other steps hold no density, so the image is the
     one the ``[R, S]`` tensors of every step give (tests/test_compiled_grid.py,
@@ -215,12 +226,20 @@ def _render_lit(origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tens
     with stage("field", items=lit.numel()):
         density_values, colour_values = field_fn(lit_positions, directions.index_select(0, ray), coloured)
     with stage("composite", items=lit.numel()):
-        weights, _ = render_weights_packed(density_values, deltas, ray)
-        colours = _packed_colours(coloured, colour_values.to(weights.dtype), weights, ray, rays)
-        opacity = sum_per_ray(weights, ray, rays)
-        rgb = sum_per_ray(weights[:, None] * colours, ray, rays) + (1.0 - opacity)[:, None] * background
-        return RenderOutput(rgb=rgb, depth=sum_per_ray(weights * t_mid, ray, rays), opacity=opacity, weights=None,
-                            t_edges=None, field_samples=lit.numel())
+        if shade_fn is None:
+            weights, _ = render_weights_packed(density_values, deltas, ray)
+            opacity = sum_per_ray(weights, ray, rays)
+            colours = _packed_colours(coloured, colour_values.to(weights.dtype), weights, ray, rays)
+            rgb, depth = sum_per_ray(weights[:, None] * colours, ray, rays), sum_per_ray(weights * t_mid, ray, rays)
+        else:  # the features of the coloured samples composited, their mean shaded once a ray
+            composited = (compiled_composite_features(density_values, deltas, t_mid, ray, coloured, colour_values, rays)
+                          or composite_features_packed(density_values, deltas, t_mid, ray, coloured, colour_values,
+                                                       rays))
+            opacity, depth, coloured_weight, accumulated = composited
+            rgb = shade_rays(accumulated, coloured_weight, opacity, directions, shade_fn)
+        rgb = rgb + (1.0 - opacity)[:, None] * background
+        return RenderOutput(rgb=rgb, depth=depth, opacity=opacity, weights=None, t_edges=None,
+                            field_samples=lit.numel())
 
 
 def _packed_colours(coloured: Tensor, colours: Tensor, weights: Tensor, ray: Tensor, rays: int) -> Tensor:
@@ -251,6 +270,37 @@ def colour_worthy(weight: Tensor, ray: Tensor, rays: int) -> Tensor:
     heaviest = weight.new_zeros(rays).scatter_reduce(0, ray, weight, "amax", include_self=False)
     threshold = torch.clamp(heaviest.index_select(0, ray) * TRAIN_RELATIVE_WEIGHT, max=TRAIN_COLOURED_WEIGHT)
     return (weight >= threshold).nonzero().squeeze(1)
+
+
+class RayValues:
+    """A sum per ray of values whose width (colours, or a field's appearance features) is known
+    at the first ``add``; no values yet reads as zero colours."""
+
+    def __init__(self, like: Tensor, rays: int) -> None:
+        self._like, self.rays = like, rays
+        self._values: Tensor | None = None
+
+    def add(self, ray: Tensor, values: Tensor) -> None:
+        """Add ``values [N, C]`` to rays ``ray [N]``."""
+        if self._values is None:
+            self._values = values.new_zeros((self.rays, values.shape[1]))
+        self._values.index_add_(0, ray, values)
+
+    def add_weighted(self, ray_colour: RayColourFn, x: Tensor, ray: Tensor, weight: Tensor) -> None:
+        """Add ``weight · ray_colour(x, ray)`` to rays ``ray [N]`` (ascending), in the function's
+        own fused pass where it has one (``composite(x, ray, weight, out)`` and ``channels``:
+        ``compiled_colour.CompiledRayFeatures``)."""
+        fused = getattr(ray_colour, "composite", None)
+        if fused is None:
+            self.add(ray, weight[:, None] * ray_colour(x, ray).to(weight.dtype))
+            return
+        if self._values is None:
+            self._values = x.new_zeros((self.rays, ray_colour.channels), dtype=torch.float32)
+        fused(x, ray, weight, self._values)
+
+    @property
+    def values(self) -> Tensor:
+        return self._values if self._values is not None else self._like.new_zeros((self.rays, 3))
 
 
 def occupied_spans(occupancy: OccupancyGrid, origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor,
@@ -291,7 +341,7 @@ def occupied_spans(occupancy: OccupancyGrid, origins: Tensor, directions: Tensor
 def render_marched_stopping_early(
     origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, *, density_fn: SampleDensityFn,
     ray_colour: RayColourFn, occupancy: OccupancyGrid, step: float, steps: int, background: Tensor | float,
-    stop: RayStop = EXACT_STOP,
+    stop: RayStop = EXACT_STOP, shade_fn: ShadeFn | None = None,
 ) -> RenderOutput:
     """``render_marched``'s image without gradients, over the same fixed steps, marched only
     where the occupancy grid allows and stopped once a ray is opaque (``stop``'s).
@@ -301,10 +351,11 @@ def render_marched_stopping_early(
     as many each round after, and a ray stops once its transmittance is below
     ``stop.opaque_transmittance`` (exact: what it would still add is under 1e-4 of a pixel).
     Empty space and what lies behind a surface cost nothing; world positions are made only for
-    samples in occupied cells."""
+    samples in occupied cells. With ``shade_fn`` (deferred colour), ``ray_colour`` gives the
+    samples' appearance features, composited and shaded once a ray (``shade_rays``)."""
     rays = origins.shape[0]
     transmittance = origins.new_ones(rays)
-    rgb = origins.new_zeros((rays, 3))
+    composited = RayValues(origins, rays)  # Σ w·colour (or features) of the coloured samples, per ray
     depth = origins.new_zeros(rays)
     skipped = origins.new_zeros(rays)  # weight left without colour, per ray
     coloured_weight = origins.new_zeros(rays)  # weight with colour, per ray
@@ -353,8 +404,8 @@ def render_marched_stopping_early(
         wanted = coloured.view(-1).index_select(0, index)
         with stage("colour", items=wanted.sum()):
             colour = ray_colour(positions[wanted], active.index_select(0, sample_ray[wanted]))
-        rgb.index_add_(0, active, accumulate(weights * coloured, colour.new_zeros((deltas.numel(), 3)).index_put_(
-            (index[wanted],), colour).view(*deltas.shape, 3)))
+        composited.add(active, accumulate(weights * coloured, colour.new_zeros(
+            (deltas.numel(), colour.shape[1])).index_put_((index[wanted],), colour).view(*deltas.shape, -1)))
         depth.index_add_(0, active, expected_depth(weights, t_mid))
         leaving = entering * round_transmittance[:, -1] * torch.exp(-density[:, -1] * deltas[:, -1])
         transmittance[active] = leaving
@@ -363,8 +414,7 @@ def render_marched_stopping_early(
         active = active[(leaving > stop.opaque_transmittance) & (ray_counts > taken)]
     # The skipped weight takes the coloured samples' weighted mean colour (a ratio of sums of
     # the same weights, so within the colours' range); a ray with none keeps it black.
-    mean_colour = rgb / coloured_weight.clamp_min(torch.finfo(rgb.dtype).tiny)[:, None]
-    rgb = rgb + torch.where(coloured_weight[:, None] > 0, mean_colour * skipped[:, None], 0.0)
+    rgb = shade_rays(composited.values, coloured_weight, coloured_weight + skipped, directions, shade_fn)
     opacity = 1.0 - transmittance
     return RenderOutput(rgb=rgb + transmittance[:, None] * background, depth=depth, opacity=opacity,
                         weights=None, t_edges=None)

@@ -11,6 +11,8 @@ sum never loses precision as opacity approaches 1, and there is no ε to bias em
 
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 from torch import Tensor
 
@@ -72,7 +74,11 @@ def render_weights_packed(density: Tensor, deltas: Tensor, ray: Tensor) -> tuple
     optical_depth = density * deltas
     wide = optical_depth.double()
     before = torch.cumsum(wide, 0) - wide
-    first = torch.searchsorted(ray, ray)  # each sample's ray's first sample
+    # Each sample's ray's first sample: the latest index at which the ray changed (a search of
+    # the sorted rays took 0.29 ms for lego's 28 k lit samples of a step; this, 0.05).
+    starts = torch.ones_like(ray, dtype=torch.bool)
+    starts[1:] = ray[1:] != ray[:-1]
+    first = torch.cummax(torch.arange(ray.numel(), device=ray.device) * starts, 0).values
     transmittance = torch.exp(-(before - before.index_select(0, first))).to(density.dtype)
     return transmittance * -torch.expm1(-optical_depth), transmittance
 
@@ -85,3 +91,55 @@ def sum_per_ray(values: Tensor, ray: Tensor, rays: int) -> Tensor:
         [0.75, 0.0, 1.0]
     """
     return values.new_zeros((rays, *values.shape[1:])).index_add(0, ray, values)
+
+
+# A ray whose coloured samples weigh less than this in all is black: it would add about this
+# much to its pixel, and deferred colour's network is spared the rays that carry nothing.
+MIN_SHADED_WEIGHT = 1e-12
+
+
+def shade_rays(accumulated: Tensor, coloured_weight: Tensor, weight: Tensor, directions: Tensor,
+               shade_fn: Callable[[Tensor, Tensor], Tensor] | None = None) -> Tensor:
+    """Each ray's colour ``[R, 3]`` over no background from what its coloured samples
+    composited: ``accumulated [R, C]`` (Σ w·v over them) and ``coloured_weight [R]`` (Σ w). Their
+    weighted mean stands for the ray's whole ``weight [R]``, the faint samples left without a
+    value included: ``weight · mean`` where the values are colours (``shade_fn`` None), ``weight
+    · shade_fn(mean, directions)`` where they are appearance features (deferred colour, run on
+    the rays with colour alone). A ray whose coloured weight is under ``MIN_SHADED_WEIGHT`` is black.
+
+    Example:
+        >>> acc, coloured = torch.tensor([[0.25, 0.5, 0.0], [0.0, 0.0, 0.0]]), torch.tensor([0.5, 0.0])
+        >>> shade_rays(acc, coloured, torch.tensor([0.75, 0.5]), torch.zeros(2, 3)).tolist()
+        [[0.375, 0.75, 0.0], [0.0, 0.0, 0.0]]
+        >>> shade_rays(acc, coloured, torch.tensor([0.75, 0.5]), torch.zeros(2, 3),
+        ...            lambda mean, d: mean.sum(dim=1, keepdim=True).expand(-1, 3)).tolist()
+        [[1.125, 1.125, 1.125], [0.0, 0.0, 0.0]]
+    """
+    shaded = (coloured_weight > MIN_SHADED_WEIGHT).nonzero().squeeze(1)
+    if shaded.numel() == 0:  # no values at all, perhaps not even their width
+        return accumulated.new_zeros((accumulated.shape[0], 3))
+    mean = accumulated.index_select(0, shaded) / coloured_weight.index_select(0, shaded)[:, None]
+    colour = mean if shade_fn is None else shade_fn(mean, directions.index_select(0, shaded))
+    colour = colour * weight.index_select(0, shaded)[:, None].to(colour.dtype)
+    return colour.new_zeros((accumulated.shape[0], 3)).index_put((shaded,), colour)
+
+
+def composite_features_packed(density: Tensor, deltas: Tensor, t_mid: Tensor, ray: Tensor, coloured: Tensor,
+                              features: Tensor, rays: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Deferred colour's compositing of samples packed per ray (``render_weights_packed``'s
+    layout): each ray's opacity Σ w ``[R]``, depth Σ w·t ``[R]``, and over the ``coloured``
+    samples (indices into the samples, ascending) their weight Σ w ``[R]`` and their
+    ``features [C, F]`` composited, Σ w·f ``[R, F]``. The reference of the compiled pass
+    (``compiled_composite.py``).
+
+    Example:
+        >>> opacity, depth, coloured, features = composite_features_packed(
+        ...     torch.tensor([1e9, 1.0, 0.5]), torch.ones(3), torch.tensor([1.0, 2.0, 3.0]), torch.tensor([0, 0, 1]),
+        ...     torch.tensor([0, 2]), torch.tensor([[2.0], [4.0]]), rays=2)
+        >>> [round(v, 4) for v in opacity.tolist()], [round(v, 4) for v in features[:, 0].tolist()]
+        ([1.0, 0.3935], [2.0, 1.5739])
+    """
+    weights, _ = render_weights_packed(density, deltas, ray)
+    weight, coloured_ray = weights.index_select(0, coloured), ray.index_select(0, coloured)
+    return (sum_per_ray(weights, ray, rays), sum_per_ray(weights * t_mid, ray, rays),
+            sum_per_ray(weight, coloured_ray, rays), sum_per_ray(weight[:, None] * features, coloured_ray, rays))

@@ -338,8 +338,8 @@ class MarchedModel(Model):
         background = torch.as_tensor(march["background"], dtype=origins.dtype, device=origins.device)
         if not every and background.dim() == 2:  # a colour a ray (training's random backgrounds)
             march = {**march, "background": background.index_select(0, inside)}
-        ray_colour = self.field.ray_colour(rays[1], colour_network_dtype(origins.device))
-        out = render_marched_compiled(*rays, density=density, ray_colour=ray_colour, library=library, **march)
+        out = render_marched_compiled(*rays, density=density, ray_colour=self._ray_colour(rays[1]), library=library,
+                                      **march)
         if every:
             return out
         rgb = background.to(out.rgb.dtype).expand(count, 3).clone()
@@ -348,6 +348,13 @@ class MarchedModel(Model):
         depth[inside], opacity[inside] = out.depth, out.opacity
         return RenderOutput(rgb=rgb, depth=depth, opacity=opacity, weights=None, t_edges=None)
 
+    def _ray_colour(self, directions: Tensor):
+        """What inference's march gives each packed sample of rays along ``directions``: its
+        colour, or its appearance features where the field defers colour (``shade_fn``)."""
+        if self.field.shade_fn() is not None:
+            return self.field.ray_features(directions)
+        return self.field.ray_colour(directions, colour_network_dtype(directions.device))
+
     def forward(
         self, origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor,
         background: Tensor | float = 1.0, generator: torch.Generator | None = None,
@@ -355,7 +362,7 @@ class MarchedModel(Model):
         if self.box_fitted:  # the rays' bounds are the scene's; the field now holds less
             t_near, t_far = self._within_field_box(origins, directions, t_near, t_far)
         march = dict(occupancy=self.occupancy, step=self.step, steps=self.samples_per_ray, background=background,
-                     density_fn=self._frozen_density)
+                     density_fn=self._frozen_density, shade_fn=self.field.shade_fn())
         if not self.training and not torch.is_grad_enabled():
             march["occupancy"], march["stop"] = self.render_occupancy(), self.ray_stop
             compiled = self._compiled_density(origins.device)
@@ -363,8 +370,8 @@ class MarchedModel(Model):
                 density, library = compiled
                 del march["density_fn"]
                 return [self._render_compiled_inside(origins, directions, t_near, t_far, density, library, march)]
-            ray_colour = self.field.ray_colour(directions, colour_network_dtype(origins.device))
-            return [render_marched_stopping_early(origins, directions, t_near, t_far, ray_colour=ray_colour, **march)]
+            return [render_marched_stopping_early(origins, directions, t_near, t_far,
+                                                  ray_colour=self._ray_colour(directions), **march)]
         offset, lit_fn = None, None
         if self.training:  # one random offset per ray: unbiased, and every step still covered
             offset = torch.rand((origins.shape[0], 1), generator=generator, device=origins.device,
