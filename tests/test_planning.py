@@ -73,7 +73,7 @@ def test_each_preset_is_planned_whole_with_a_reason_for_every_decision(preset, k
 def _check_shaping(preset, kind, facts, plan):
     """What the rules that shape a preset to the scene decided, and nothing where none applies."""
     config, decisions = plan.config, plan.decisions
-    shaped = {"auto": {"model", "rays", "view_dependence", "grid_resolution", "finest_cell", "initial_resolution",
+    shaped = {"auto": {"model", "rays", "view_dependence", "colour", "grid_resolution", "finest_cell", "initial_resolution",
                        "growth", "last_growth", "background", "occupancy_prior", "box_fit", "samples"},
               "surface": {"surface_softness", "surface_opacity"},
               "plenoxels": {"grid_resolution", "finest_cell", "initial_resolution", "box_fit"}}.get(preset, set())
@@ -86,6 +86,7 @@ def _check_shaping(preset, kind, facts, plan):
         assert config.grid.view_dependent is True
         assert "view-dependent materials" in decisions["view_dependence"]["reason"] if kind == "demo" else (
             "does not say" in decisions["view_dependence"]["reason"])
+        assert config.grid.deferred_colour is True and "once a ray" in decisions["colour"]["reason"]
         assert MIN_RESOLUTION <= config.grid.resolution <= MAX_RESOLUTION
         assert config.grid.finest_cell == pytest.approx(pixel_footprint(facts.train_split, plan.ray_bounds.box))
         assert config.grid.last_growth_min_steps == (LAST_GROWTH_MIN_STEPS if config.grid.upsample_iterations else 0)

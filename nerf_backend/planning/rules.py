@@ -51,6 +51,13 @@ RAYS_REASON = (
     "as many rays a second: a step's fixed costs are shared by more rays); 4 096 lost at 2 minutes (25.65 dB "
     "against 28.25 before the refit); on the three shared real scenes at 100×100, 2 048 scored 0.19-0.42 dB more "
     "after 2 minutes (docs/benchmarks_lego.md, \"Rays a step\" and \"The box fitted again\")")
+# Colour deferred to once a ray (SNeRG's deferred shading: grid.deferred_colour), measured
+# against per-sample colour side by side (docs/benchmarks_lego.md, "Deferred colour").
+DEFERRED_COLOUR_REASON = (
+    "the appearance features composited along each ray and the colour network run once a ray: measured on lego at "
+    "800×800 on 2 CPU cores, 33.71 dB after 10 minutes against per-sample colour's 33.20 (15 478 steps against "
+    "10 139) and eval 1.04 s a view against 1.21; on the 100×100 suite after 120 s ahead on 8 of 9 scenes (+0.02 to "
+    "+0.90 dB), 0.15 dB behind on 20_specular (docs/benchmarks_lego.md, \"Deferred colour\")")
 # Steps a time budget must still allow (at the run's rate so far) for the grid's last growth:
 # RobotExpressive at 800×800 without a prior had about 1 000 left at 60 s (the coarser grid then
 # better) and 2 200 at 120 s (the final grid as good); held back with 60 s, three real scenes
@@ -250,6 +257,18 @@ def auto_view_dependence(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
         dependent = plan.config.grid.view_dependent
         reason = "the dataset does not say whether its materials are view-dependent: keep direction input"
     yield Proposal("view_dependence", "grid.view_dependent", dependent, reason)
+
+
+def auto_colour(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
+    """Colour deferred to once a ray (measured against per-sample colour at equal time).
+
+    Example:
+        >>> facts, plan = _example()
+        >>> next(auto_colour(facts, plan)).value
+        True
+    """
+    if _auto(facts, plan):
+        yield Proposal("colour", "grid.deferred_colour", True, DEFERRED_COLOUR_REASON)
 
 
 def auto_grid_resolution(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
@@ -490,7 +509,7 @@ def sparse_grid_box_fit(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
 # finer), the views before anything measured on them, the prior before the surface's opacity.
 RULES: tuple[Rule, ...] = (
     device, budget, train_views, ray_bounds,
-    auto_model, auto_rays, auto_view_dependence, auto_grid_resolution, auto_growth, auto_background,
+    auto_model, auto_rays, auto_view_dependence, auto_colour, auto_grid_resolution, auto_growth, auto_background,
     auto_occupancy_prior, auto_box_fit, auto_samples,
     surface_softness, sparse_grid_size, sparse_grid_growth, sparse_grid_box_fit,
     occupancy_prior, surface_opacity, coarse_images,
