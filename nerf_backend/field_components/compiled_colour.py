@@ -58,13 +58,28 @@ def _linear_layers(network: nn.Sequential) -> list[nn.Linear] | None:
     return [first, second, third]
 
 
+def _grid_network(field) -> tuple[_ColourNetwork, list[Tensor]]:
+    """The pass's structure with ``field``'s appearance grid and box filled in (the network's
+    weights left to the caller), and the grid's row tables it points into (keep them alive)."""
+    grid = field.appearance_grid
+    with torch.no_grad():
+        tables = [_rows_in_place(p) for pair in zip(grid.planes, grid.lines) for p in pair]
+        box_min = field.box_min.float().tolist()
+        scale = (2.0 / (field.box_max - field.box_min).float()).tolist()
+    network = _ColourNetwork()
+    network.grid = _components([grid], tables, None, None, None, None)
+    network.box_min = (ctypes.c_float * 3)(*box_min)
+    network.scale = (ctypes.c_float * 3)(*scale)
+    network.features, network.hidden = grid.out_dims, COMPILED_WIDTH
+    return network, tables
+
+
 class CompiledRayColour:
     """A ``RayColourFn`` for rays of ``directions``: ``colour(x [P, 3], ray [P]) -> [P, 3]``,
     computed by the compiled pass. Holds the tensors the pass reads."""
 
     def __init__(self, field, directions: Tensor, layers: list[nn.Linear], library: ctypes.CDLL) -> None:
         _, second, third = layers
-        grid = field.appearance_grid
         with torch.no_grad():
             per_ray, grid_weight = field.first_layer_parts(directions)
             self._kept = [
@@ -72,16 +87,9 @@ class CompiledRayColour:
                 second.weight.t().contiguous(), second.bias.detach().contiguous(),
                 third.weight.detach().contiguous(), third.bias.detach().contiguous(),
             ]
-            self._tables = [_rows_in_place(p) for pair in zip(grid.planes, grid.lines) for p in pair]
-            box_min = field.box_min.float().tolist()
-            scale = (2.0 / (field.box_max - field.box_min).float()).tolist()
-        network = _ColourNetwork()
-        network.grid = _components([grid], self._tables, None, None, None, None)
+        network, self._tables = _grid_network(field)
         (network.per_ray, network.w1, network.w2, network.b2, network.w3,
          network.b3) = [tensor.data_ptr() for tensor in self._kept]
-        network.box_min = (ctypes.c_float * 3)(*box_min)
-        network.scale = (ctypes.c_float * 3)(*scale)
-        network.features, network.hidden = grid.out_dims, COMPILED_WIDTH
         self._network = network
         self._library = library
 
@@ -104,20 +112,10 @@ class CompiledRayFeatures:
     weighted features into its ray's row in one compiled pass (no ``[P, F]`` tensor)."""
 
     def __init__(self, field, library: ctypes.CDLL) -> None:
-        grid = field.appearance_grid
         self._field = field
-        with torch.no_grad():
-            self._tables = [_rows_in_place(p) for pair in zip(grid.planes, grid.lines) for p in pair]
-            box_min = field.box_min.float().tolist()
-            scale = (2.0 / (field.box_max - field.box_min).float()).tolist()
-        network = _ColourNetwork()
-        network.grid = _components([grid], self._tables, None, None, None, None)
-        network.box_min = (ctypes.c_float * 3)(*box_min)
-        network.scale = (ctypes.c_float * 3)(*scale)
-        network.features, network.hidden = grid.out_dims, COMPILED_WIDTH
-        self._network = network
+        self._network, self._tables = _grid_network(field)  # the network's weights unused
         self._library = library
-        self.channels = grid.out_dims
+        self.channels = field.appearance_grid.out_dims
 
     @torch.no_grad()
     def __call__(self, x: Tensor, ray: Tensor) -> Tensor:

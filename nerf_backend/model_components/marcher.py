@@ -232,9 +232,10 @@ def _render_lit(origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tens
             colours = _packed_colours(coloured, colour_values.to(weights.dtype), weights, ray, rays)
             rgb, depth = sum_per_ray(weights[:, None] * colours, ray, rays), sum_per_ray(weights * t_mid, ray, rays)
         else:  # the features of the coloured samples composited, their mean shaded once a ray
-            composited = (compiled_composite_features(density_values, deltas, t_mid, ray, coloured, colour_values, rays)
-                          or composite_features_packed(density_values, deltas, t_mid, ray, coloured, colour_values,
-                                                       rays))
+            inputs = (density_values, deltas, t_mid, ray, coloured, colour_values, rays)
+            composited = compiled_composite_features(*inputs)
+            if composited is None:  # not on the CPU in float32, or no C compiler
+                composited = composite_features_packed(*inputs)
             opacity, depth, coloured_weight, accumulated = composited
             rgb = shade_rays(accumulated, coloured_weight, opacity, directions, shade_fn)
         rgb = rgb + (1.0 - opacity)[:, None] * background
