@@ -192,3 +192,17 @@ def camera_path_through_test_views(dataset: Path, folder: Path, repeats: int = 1
         for source, target in pairs:
             shutil.copy(source, target)
     return path, len(frames), pairs
+
+
+def rays_through_box(box, count: int, seed: int):
+    """``count`` rays from a sphere of radius 4 towards random points of ``box`` (a
+    ``SceneBounds``): origins, unit directions, and where each enters and leaves the box."""
+    import torch
+    from nerf_backend.core.cameras import ray_box_intersection
+
+    generator = torch.Generator().manual_seed(seed)
+    origins = torch.nn.functional.normalize(torch.randn(count, 3, generator=generator), dim=-1) * 4.0
+    targets = (torch.rand(count, 3, generator=generator) * 2 - 1) * torch.tensor(box.box_max)
+    directions = torch.nn.functional.normalize(targets - origins, dim=-1)
+    near, far, _ = ray_box_intersection(origins, directions, torch.tensor(box.box_min), torch.tensor(box.box_max))
+    return origins, directions, near, far

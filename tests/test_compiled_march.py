@@ -13,8 +13,8 @@ import math
 import pytest
 import torch
 
+from conftest import rays_through_box
 from nerf_backend.configs.presets import PRESETS
-from nerf_backend.core.cameras import ray_box_intersection
 from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.kernels import build
 from nerf_backend.model_components import compiled_march
@@ -57,15 +57,6 @@ def _model(preset: str, seed: int, spread: float, **surface):
     return model.eval()
 
 
-def _rays(count: int, seed: int):
-    generator = torch.Generator().manual_seed(seed)
-    origins = torch.nn.functional.normalize(torch.randn(count, 3, generator=generator), dim=-1) * 4.0
-    targets = (torch.rand(count, 3, generator=generator) * 2 - 1) * torch.tensor(BOX.box_max)
-    directions = torch.nn.functional.normalize(targets - origins, dim=-1)
-    near, far, _ = ray_box_intersection(origins, directions, torch.tensor(BOX.box_min), torch.tensor(BOX.box_max))
-    return origins, directions, near, far
-
-
 def _both(model, rays, library):
     """The image through the compiled march (as the model renders on the CPU) and through
     PyTorch's march, from the same occupancy and density volume; the reference colours each
@@ -90,7 +81,7 @@ def test_the_compiled_march_renders_pytorchs_image(preset, spread, surface, thre
     monkeypatch.setattr(torch, "get_num_threads", lambda: threads)
     model = _model(preset, seed=3, spread=spread, **surface)
     assert 0.01 < model.occupancy.occupied_fraction < 0.98  # both kinds of space
-    compiled, reference = _both(model, _rays(3000, seed=4), library)
+    compiled, reference = _both(model, rays_through_box(BOX, 3000, seed=4), library)
     opaque = reference.opacity > 1 - OPAQUE_TRANSMITTANCE
     assert 0 < opaque.sum() < len(opaque)  # rays that stop and rays that pass through
     # Each path stops a ray somewhere below 1e-4 transmittance and leaves up to 1e-3 of its
@@ -98,7 +89,7 @@ def test_the_compiled_march_renders_pytorchs_image(preset, spread, surface, thre
     bound = 2 * OPAQUE_TRANSMITTANCE + 2 * SKIPPED_WEIGHT + 1e-5
     assert (compiled.rgb - reference.rgb).abs().max() < bound
     assert (compiled.opacity - reference.opacity).abs().max() < 2 * OPAQUE_TRANSMITTANCE + 1e-5
-    far = float(_rays(1, seed=4)[3].max()) + 8.0
+    far = float(rays_through_box(BOX, 1, seed=4)[3].max()) + 8.0
     assert (compiled.depth - reference.depth).abs().max() < 2 * OPAQUE_TRANSMITTANCE * far + 1e-4
     assert (compiled.rgb - reference.rgb).abs().mean() < 1e-4
 
@@ -109,7 +100,7 @@ def test_a_draft_stops_its_rays_sooner_in_both_marches(library):
     agree within the draft stop's bounds, opaque rays keep up to 1e-2 of their light (some more
     than the exact stop's 1e-4), and the exact stop is back after the block."""
     model = _model("fast", seed=3, spread=1.4)
-    rays = _rays(3000, seed=4)
+    rays = rays_through_box(BOX, 3000, seed=4)
     with model.march_step_scaled(2.0):
         assert model.ray_stop == DRAFT_STOP
         compiled, reference = _both(model, rays, library)
@@ -147,7 +138,7 @@ def test_a_translucent_field_overflows_the_sample_buffer_and_is_marched_again(li
             return original(*args)
 
     monkeypatch.setattr(library, "march_render", Counting())
-    compiled, reference = _both(model, _rays(1024, seed=6), library)
+    compiled, reference = _both(model, rays_through_box(BOX, 1024, seed=6), library)
     assert len(calls) > 2 and calls[0] == 1024 and all(a > b > 0 for a, b in zip(calls, calls[1:]))  # fewer each time
     assert float(reference.opacity.min()) < 0.9  # translucent: no early stop
     assert (compiled.rgb - reference.rgb).abs().max() < 2 * SKIPPED_WEIGHT + 1e-5
@@ -185,7 +176,7 @@ def test_rays_with_nan_or_infinite_parts_leave_the_others_as_they_were(library):
     """A float cast to an index must be in range in C: NaN or infinite origins, directions and
     bounds are clamped before any cast, and the finite rays render as they do alone."""
     model = _model("fast", seed=3, spread=1.4)
-    origins, directions, near, far = _rays(64, seed=1)
+    origins, directions, near, far = rays_through_box(BOX, 64, seed=1)
     with torch.no_grad():
         alone = model(origins[5:], directions[5:], near[5:], far[5:])[0]
         origins[0], directions[1], near[2], far[3], origins[4] = float("nan"), float("inf"), float("nan"), float("inf"), 1e30

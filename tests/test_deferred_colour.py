@@ -16,9 +16,8 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import run_python
+from conftest import rays_through_box, run_python
 from nerf_backend.configs.presets import PRESETS
-from nerf_backend.core.cameras import ray_box_intersection
 from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.data.dataset import load_split
 from nerf_backend.fields.grid_field import GridField, GridFieldConfig
@@ -218,15 +217,6 @@ def _model(seed: int = 3):
     return model.eval()
 
 
-def _box_rays(count: int, seed: int):
-    generator = torch.Generator().manual_seed(seed)
-    origins = torch.nn.functional.normalize(torch.randn(count, 3, generator=generator), dim=-1) * 4.0
-    targets = (torch.rand(count, 3, generator=generator) * 2 - 1) * torch.tensor(BOX.box_max)
-    directions = torch.nn.functional.normalize(targets - origins, dim=-1)
-    near, far, _ = ray_box_intersection(origins, directions, torch.tensor(BOX.box_min), torch.tensor(BOX.box_max))
-    return origins, directions, near, far
-
-
 @pytest.mark.parametrize("threads", [1, 2, 3])
 def test_inference_renders_the_training_marchs_image_in_both_marches(threads, monkeypatch):
     """The model's inference (the compiled march on the CPU) and PyTorch's early-stopping march
@@ -236,7 +226,7 @@ def test_inference_renders_the_training_marchs_image_in_both_marches(threads, mo
     assert library is not None, reason
     monkeypatch.setattr(torch, "get_num_threads", lambda: threads)
     model = _model()
-    rays = _box_rays(3000, seed=4)
+    rays = rays_through_box(BOX, 3000, seed=4)
     with torch.no_grad():
         compiled = model(*rays)[0]
         march = dict(occupancy=model.render_occupancy(), step=model.step, steps=model.samples_per_ray, background=1.0,
