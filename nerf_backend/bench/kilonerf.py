@@ -35,6 +35,7 @@ from ..metrics.image_metrics import psnr
 from ..model_components.marcher import render_marched_stopping_early
 from ..model_components.render_output import RenderOutput
 from ..models.marched import MarchedModel
+from ..training.adam import Adam
 
 BATCH = 16384  # distillation samples a step
 
@@ -67,7 +68,7 @@ def distil(teacher, cells: tuple[int, int, int], seconds: float, seed: int = 0,
     torch.manual_seed(seed)
     occupancy = teacher.render_occupancy()
     student = KiloNerf(teacher.field.box, cells).to(device)
-    optimiser = torch.optim.Adam(student.parameters(), lr=5e-3)
+    optimiser = Adam([{"params": student.parameters(), "lr": 5e-3}])
     occupied = occupancy.occupied.nonzero().float()
     cell_size = (occupancy.box_max - occupancy.box_min) / torch.tensor(occupancy.cells, device=device)
     start, steps, losses = time.perf_counter(), 0, []

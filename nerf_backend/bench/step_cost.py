@@ -14,6 +14,7 @@ from ..core.errors import NerfError
 from ..core.files import write_json
 from ..data.dataset import composite, load_split
 from ..models.registry import build_model
+from ..training.adam import Adam
 from ..training.trainer import TrainOptions, train
 from .plain_nerf import PlainNerf, plain_rays
 
@@ -41,8 +42,8 @@ def step_cost(dataset: Path, preset: str, steps: int, out_dir: Path, seed: int =
     split = load_split(dataset, "train")
     torch.manual_seed(seed)
     plain = PlainNerf(config)
-    optimizer = torch.optim.Adam(plain.parameters(), lr=config.learning_rate, betas=config.adam_betas,
-                                 eps=config.adam_eps)
+    optimizer = Adam([{"params": plain.parameters(), "lr": config.learning_rate}], betas=config.adam_betas,
+                     eps=config.adam_eps)
     count, height, width = split.rgba.shape[:3]
     intrinsics = split.intrinsics
     seconds = []

@@ -12,7 +12,7 @@ A row that skipped k steps has its moments decayed by β^k before its update, as
 would have been by k steps of zero gradient; the drift dense Adam would have given its value over
 those k steps (its momentum carrying on) is not applied: the rows a step leaves are those no
 ray of it saw. Bias correction uses the run's step count, as dense Adam's does. Every other
-parameter (the networks, a grid read through PyTorch) goes through PyTorch's Adam as before:
+parameter (the networks, a grid read through PyTorch) goes through ``Adam`` (training/adam.py):
 a parameter with a ``.grad`` is dense.
 
 Example:
@@ -37,6 +37,7 @@ import torch
 from torch import Tensor
 
 from ..field_components.compiled_grid import channel_rows, compiled_grid_library
+from .adam import Adam
 
 
 def _rows_like(parameter: Tensor) -> Tensor:
@@ -76,8 +77,8 @@ class RowGradients:
         return [(p.data_ptr(), tuple(p.shape)) for p in parameters] == self.pointers
 
 
-class RowSparseAdam(torch.optim.Adam):
-    """``torch.optim.Adam`` whose ``grids``' row parameters (each grid's
+class RowSparseAdam(Adam):
+    """``Adam`` whose ``grids``' row parameters (each grid's
     ``sparse_row_parameters()``), when their gradient came through the compiled kernel, are
     updated row by row (see the module's notes); ``rows_updated``: the
     grid rows the last step updated, ``floats_updated`` the values (the touched rows' and the dense
