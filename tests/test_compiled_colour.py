@@ -138,6 +138,20 @@ def _cpu_flags() -> set[str]:
 X86_LEVELS = {"x86-64": {"sse2"}, "x86-64-v3": {"avx2", "fma", "bmi2", "f16c", "movbe"}}
 
 
+def test_nerf_kernel_target_builds_every_kernel_for_that_level(monkeypatch):
+    """NERF_KERNEL_TARGET=x86-64-v3: the AVX2 machines' code, run here (docs/testing.md)."""
+    import platform
+
+    from nerf_backend.kernels.build import TARGET_VARIABLE, load_kernel
+    if platform.machine().lower() not in ("x86_64", "amd64") or not X86_LEVELS["x86-64-v3"] <= _cpu_flags():
+        pytest.skip("this CPU cannot run code for x86-64-v3")
+    monkeypatch.setenv(TARGET_VARIABLE, "x86-64-v3")
+    chosen = load_kernel("vm_grid")
+    assert chosen[0] is not None and chosen == load_kernel("vm_grid", "x86-64-v3")
+    monkeypatch.delenv(TARGET_VARIABLE)
+    assert load_kernel("vm_grid")[0] is not chosen[0]  # the running CPU's own build
+
+
 @pytest.mark.parametrize("level", sorted(X86_LEVELS))
 def test_the_pass_built_for_each_vector_width_the_cpu_runs_colours_as_pytorch(level):
     import platform

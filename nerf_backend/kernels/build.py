@@ -32,6 +32,10 @@ FLAGS = ("-O3", "-std=c99", "-shared", "-fPIC", "-pthread", "-fno-math-errno")
 # CPU lacks; a compiler that refuses the flag builds portable code. Tests also build for older
 # instruction sets the CPU runs (``target``), to check the kernels' code for each vector width.
 NATIVE_TARGET = "native"
+# Another ``-march`` for every kernel a process loads, where set: x86-64-v3 runs the AVX2
+# machines' code on an AVX-512 one (with torch's own AVX2 kernels, ATEN_CPU_CAPABILITY=avx2
+# and ONEDNN_MAX_CPU_ISA=AVX2, docs/testing.md says how close that comes to an AVX2 machine).
+TARGET_VARIABLE = "NERF_KERNEL_TARGET"
 # Where built kernels are kept: NERF_KERNEL_CACHE, else the user's cache folder.
 CACHE_VARIABLE = "NERF_KERNEL_CACHE"
 
@@ -64,11 +68,16 @@ def cpu_identity() -> str:
     return "\n".join(sorted({line for line in text.splitlines() if line.split(":")[0].strip() in wanted}))
 
 
+def load_kernel(name: str, target: str | None = None) -> tuple[ctypes.CDLL | None, str | None]:
+    """The library built from ``NAME.c`` for the compiler's ``-march=TARGET`` (by default
+    NERF_KERNEL_TARGET's, else the running CPU's) and None, or None and why it is unavailable
+    (no compiler, a failed build); built once per source, compiler, target and machine, then
+    reused."""
+    return _load_kernel(name, target or os.environ.get(TARGET_VARIABLE) or NATIVE_TARGET)
+
+
 @functools.cache
-def load_kernel(name: str, target: str = NATIVE_TARGET) -> tuple[ctypes.CDLL | None, str | None]:
-    """The library built from ``NAME.c`` for the compiler's ``-march=TARGET`` and None, or None
-    and why it is unavailable (no compiler, a failed build); built once per source, compiler,
-    target and machine, then reused."""
+def _load_kernel(name: str, target: str) -> tuple[ctypes.CDLL | None, str | None]:
     source = SOURCES / f"{name}.c"
     compiler = c_compiler()
     if compiler is None:
