@@ -17,7 +17,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Optional, Sequence
 
-from nerf_contract.dataset_layout import GEOMETRY_NAME, PRIOR_NAME, PROFILE_NAME, SPLITS
+from nerf_contract.dataset_layout import APPEARANCE_REGIONS, GEOMETRY_NAME, PRIOR_NAME, PROFILE_NAME, SPLITS
 
 from .core import trajectories
 from .core.builtin_scenes import builtin_scene
@@ -265,7 +265,9 @@ def _scene_files(survey: _Survey) -> tuple[Optional[FileWriter], Optional[FileWr
     from .blender.scene_occupancy import collect_parts
 
     started = time.perf_counter()
-    scene_parts = collect_parts(survey.view_layer, survey.frame)
+    region_of = {material["name"]: APPEARANCE_REGIONS.index(material["region"])
+                 for material in survey.profile["materials"]}
+    scene_parts = collect_parts(survey.view_layer, survey.frame, region_of)
     return _occupancy_prior(survey, scene_parts, started), _scene_geometry(survey, scene_parts)
 
 

@@ -22,6 +22,11 @@ import re
 SPLITS = ("train", "val", "test")
 PROFILE_NAME = "scene_profile.json"
 PRIOR_NAME = "occupancy_prior.npz"
+# What the surface in each cell of the prior's ``regions`` array is made of, by index (0: no
+# surface there, or none classified), from the scene's materials (the profile's ``materials``,
+# each with its ``region`` and why). Ordered by how much a surface's colour changes with the
+# view: where regions share a cell, the later one is kept.
+APPEARANCE_REGIONS = ("none", "diffuse", "glossy", "metal", "thin_film", "transmissive")
 GEOMETRY_NAME = "scene_geometry.ply"
 NGP_NAME = "transforms.json"
 COLMAP_DIR = "colmap"

@@ -297,6 +297,27 @@ def test_a_material_without_nodes_or_principled_bsdf_says_so() -> None:
         {"value": 0.5}
 
 
+@pytest.mark.parametrize(("nodes", "region", "reason"), [
+    ([principled(**{"Transmission Weight": 1.0, "Metallic": 1.0})], "transmissive", "transmission 1"),
+    ([principled(**{"Transmission Weight": "linked"})], "transmissive", "transmission varies (driven by a link)"),
+    ([node("BSDF_GLASS", "Glass")], "transmissive", "glass BSDF 'Glass'"),
+    ([principled(**{"Thin Film Thickness": 500.0, "Metallic": 1.0})], "thin_film", "thin film 500 nm"),
+    ([principled(Metallic=1.0)], "metal", "metallic 1"),
+    ([principled(Metallic="linked")], "metal", "metallic varies (driven by a link)"),
+    ([principled(Metallic=0.3)], "glossy", "Principled BSDF 'Principled BSDF': metallic 0.3"),
+    ([principled(**{"Specular IOR Level": 0.0})], "diffuse", "nothing in it depends on the view"),
+    ([node("BSDF_DIFFUSE", "D")], "diffuse", "nothing in it depends on the view"),
+    ([principled(**{"Specular IOR Level": 0.0, "Alpha": 0.5})], "diffuse", "nothing in it depends on the view"),
+])
+def test_each_material_gets_the_appearance_region_its_strongest_lobe_asks(nodes, region, reason) -> None:
+    """Light through it first, then a thin film, metal, any other view dependence, none; alpha
+    alone (a cut-out) is no lobe. The region is one the contract names, with why."""
+    from nerf_contract.dataset_layout import APPEARANCE_REGIONS
+    record = classify_material(material(*nodes)).record()
+    assert (record["region"], record["region_reason"]) == (region, reason)
+    assert region in APPEARANCE_REGIONS
+
+
 def test_cycles_output_node_choice_follows_blender() -> None:
     assert choose_output_node([]) is None
     assert choose_output_node([{"target": "EEVEE", "is_active_output": True}]) is None

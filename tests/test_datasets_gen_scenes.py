@@ -382,6 +382,40 @@ def test_material_facts_are_read_from_the_node_trees(tmp_path: Path) -> None:
     assert facts["Chalk"] == {"shader": "other", "inputs": {}, "other_shaders": ["diffuse BSDF 'Diffuse BSDF'"]}
 
 
+def test_each_material_s_region_is_in_the_profile_and_in_the_prior_s_cells(tmp_path: Path) -> None:
+    """materials.blend's six balls (glass, metal, thin film, a coated group, glossy, chalk), a
+    ball a material: each material's appearance region with why in the profile, and the prior's
+    ``regions`` holding it on every point of its ball's surface."""
+    from nerf_contract.dataset_layout import APPEARANCE_REGIONS
+    result = subprocess.run([sys.executable, str(SCRIPTS / "make_scenes.py"), str(tmp_path), "materials"],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    out = tmp_path / "dataset"
+    assert run_module(str(tmp_path / "materials.blend"), "--out", str(out), *TINY).returncode == 0
+    profile = json.loads((out / "scene_profile.json").read_text())
+    regions = {m["name"]: m["region"] for m in profile["materials"]}
+    assert regions == {"Glass": "transmissive", "Metal": "metal", "Film": "thin_film", "Grouped": "glossy",
+                       "Mixed": "glossy", "Chalk": "diffuse"}
+    reasons = {m["name"]: m["region_reason"] for m in profile["materials"]}
+    assert reasons["Glass"] == "transmission 1" and reasons["Film"] == "thin film 500 nm"
+    with np.load(out / profile["occupancy_prior"]["file"]) as data:
+        cells, surface = data["regions"], data["surface"]
+        box_min, cell_size = data["box_min"], float(data["cell_size"])
+    assert np.array_equal(cells > 0, surface)
+    matrix = np.array(profile["world_to_nerf"]["matrix"])
+    generator = np.random.default_rng(0)
+    for index, name in enumerate(("Glass", "Metal", "Film", "Grouped", "Mixed", "Chalk")):
+        directions = generator.normal(size=(500, 3))
+        # Between the 16×8 sphere's faces (0.36-0.40 from its centre) and its vertices.
+        world = np.array([1.0 * index - 2.5, 0.0, 0.0]) + 0.38 * directions / np.linalg.norm(directions, axis=1,
+                                                                                            keepdims=True)
+        nerf = world @ matrix[:3, :3].T + matrix[:3, 3]
+        held = cells[tuple(np.floor((nerf - box_min) / cell_size).astype(int).T)]
+        assert (held == APPEARANCE_REGIONS.index(regions[name])).all(), (name, np.unique(held))
+    shares = profile["occupancy_prior"]["regions"]
+    assert set(shares) == set(regions.values()) and abs(sum(shares.values()) - 1.0) < 1e-9
+
+
 def test_shared_robot_is_refused_then_rendered_with_allow_missing(tmp_path: Path, shared_scenes: Path) -> None:
     line = error_line(run_module("../shared/scenes/RobotExpressive.blend", "--out", str(tmp_path / "o"), *TINY))
     assert "Texture.png" in line and "missing image file" in line and "--allow-missing" in line

@@ -192,6 +192,30 @@ def test_closed_box_solid_holds_its_interior_and_surface_stays_near_it() -> None
     assert not (solid & outer).any()
 
 
+def test_each_surface_cell_holds_the_region_of_the_parts_that_mark_it() -> None:
+    """Two boxes of other materials that overlap, one with a margin: every cell a part marks
+    (dilated as the surface is) holds its region, a cell both mark the later region of
+    APPEARANCE_REGIONS, and no cell off the surface holds any."""
+    from nerf_contract.dataset_layout import APPEARANCE_REGIONS
+    diffuse, glass = APPEARANCE_REGIONS.index("diffuse"), APPEARANCE_REGIONS.index("transmissive")
+    clay = Part(box_triangles([0.0, 0.0, 0.0], [1.0, 1.0, 1.0]), region=diffuse)
+    vase = Part(box_triangles([0.7, 0.2, 0.2], [1.6, 0.8, 0.9]), margin=0.05, region=glass)
+    prior = voxelise([clay, vase], resolution=48)
+    grid = prior.grid
+
+    def own_cells(part: Part) -> np.ndarray:  # the part's marks on the prior's grid, dilated as voxelise does
+        marked = np.zeros(grid.shape, bool)
+        mark_triangles(marked, grid, part.triangles)
+        return dilate(marked, 1 + vx.BASE_MARGIN_CELLS + vx.margin_in_cells(part.margin, grid.cell_size))
+
+    clay_cells, vase_cells = own_cells(clay), own_cells(vase)
+    assert prior.regions.dtype == np.uint8 and np.array_equal(prior.surface, clay_cells | vase_cells)
+    assert (clay_cells & vase_cells).sum() > 0 and (clay_cells & ~vase_cells).sum() > 100
+    assert (prior.regions[vase_cells] == glass).all()  # the shared cells included
+    assert (prior.regions[clay_cells & ~vase_cells] == diffuse).all()
+    assert not prior.regions[~prior.surface].any()
+
+
 def test_filled_boxes_cover_every_cell_they_touch() -> None:
     rng = np.random.default_rng(3)
     grid = Grid(np.zeros(3), 0.5, (16, 16, 16))

@@ -173,8 +173,7 @@ def collect_geometry(scene: "bpy.types.Scene", view_layer: "bpy.types.ViewLayer"
         if obj.type not in SURFACE_OBJECT_TYPES or not renders:
             continue
         renderable.add(owner.original.name)
-        slots = [slot.material.name if slot.material else NO_MATERIAL for slot in obj.material_slots]
-        for name in slots or [NO_MATERIAL]:
+        for name in slot_materials(obj):
             users = geometry.materials.setdefault(name, [])
             if owner.original.name not in users:
                 users.append(owner.original.name)
@@ -193,6 +192,13 @@ def collect_geometry(scene: "bpy.types.Scene", view_layer: "bpy.types.ViewLayer"
         geometry.low, geometry.high = low, high
         geometry.radius = bounding_sphere_radius(geometry.centre, points)
     return geometry
+
+
+def slot_materials(obj: "bpy.types.Object") -> list[str]:
+    """The material name of each of the object's slots (NO_MATERIAL for an empty one); one
+    NO_MATERIAL for an object with no slots."""
+    return [slot.material.name if slot.material else NO_MATERIAL
+            for slot in getattr(obj, "material_slots", ())] or [NO_MATERIAL]
 
 
 def _append_vertices(obj: "bpy.types.Object", matrix: object, points: "array[float]") -> None:

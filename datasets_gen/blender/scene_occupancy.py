@@ -15,17 +15,18 @@ Needs numpy (voxelise.py): the generator imports this module only when numpy is 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Iterator, Optional
+from typing import Any, Iterator, Mapping, Optional
 
 import bpy
 import numpy as np
 from mathutils import Vector
 
-from nerf_contract.dataset_layout import PRIOR_NAME
+from nerf_contract.dataset_layout import APPEARANCE_REGIONS, PRIOR_NAME
 
 from ..core.frame_fit import Similarity
+from ..core.materials import NO_MATERIAL
 from ..core.voxelise import BASE_MARGIN_CELLS, DEFAULT_RESOLUTION, RULE, Occupancy, Part, margin_in_cells, voxelise
-from .scene_bounds import MESHABLE_TYPES, SURFACE_OBJECT_TYPES, _camera_invisible_objects, _instances
+from .scene_bounds import MESHABLE_TYPES, SURFACE_OBJECT_TYPES, _camera_invisible_objects, _instances, slot_materials
 
 MOTION_REASON = "motion: none, rendered with motion blur off"
 BASE_REASON = (f"{BASE_MARGIN_CELLS} cell everywhere: the backend's grid is coarser than this one "
@@ -46,10 +47,11 @@ class _Margin:
 
 @dataclass
 class SceneParts:
-    """The scene's geometry grouped by margin (NeRF units), and what was filled as boxes, with why."""
+    """The scene's geometry grouped by margin (NeRF units) and appearance region (an index into
+    APPEARANCE_REGIONS), and what was filled as boxes, with why."""
 
-    triangles: dict[float, list[np.ndarray]] = field(default_factory=dict)
-    boxes: dict[float, list[np.ndarray]] = field(default_factory=dict)
+    triangles: dict[tuple[float, int], list[np.ndarray]] = field(default_factory=dict)
+    boxes: dict[tuple[float, int], list[np.ndarray]] = field(default_factory=dict)
     margin_reasons: dict[str, tuple[float, str]] = field(default_factory=dict)  # object -> (margin, why)
     filled_boxes: dict[str, str] = field(default_factory=dict)  # object -> why
 
@@ -59,9 +61,9 @@ class SceneParts:
 
     def parts(self) -> list[Part]:
         empty = np.zeros((0, 3, 3))
-        return [Part(np.concatenate(self.triangles.get(margin, [empty])),
-                     np.array(self.boxes.get(margin, [])).reshape(-1, 2, 3), margin)
-                for margin in sorted(set(self.triangles) | set(self.boxes))]
+        return [Part(np.concatenate(self.triangles.get(key, [empty])),
+                     np.array(self.boxes.get(key, [])).reshape(-1, 2, 3), margin=key[0], region=key[1])
+                for key in sorted(set(self.triangles) | set(self.boxes))]
 
 
 def build_occupancy_prior(scene_parts: SceneParts,
@@ -72,8 +74,12 @@ def build_occupancy_prior(scene_parts: SceneParts,
     return prior_record(occupancy, scene_parts), occupancy.arrays()
 
 
-def collect_parts(view_layer: "bpy.types.ViewLayer", frame: Similarity) -> SceneParts:
-    """Every renderable instance's triangles (or box) in the NeRF frame, grouped by margin."""
+def collect_parts(view_layer: "bpy.types.ViewLayer", frame: Similarity,
+                  region_of: Optional[Mapping[str, int]] = None) -> SceneParts:
+    """Every renderable instance's triangles (or box) in the NeRF frame, grouped by margin and
+    by the appearance region of their material slot's material (``region_of``: material name,
+    or NO_MATERIAL, to its index into APPEARANCE_REGIONS; 0 for any it does not name)."""
+    region_of = region_of or {}
     view_layer.update()
     scene_parts = SceneParts()
     for obj, owner, matrix, renders in _instances(view_layer, _camera_invisible_objects(view_layer)):
@@ -84,8 +90,14 @@ def collect_parts(view_layer: "bpy.types.ViewLayer", frame: Similarity) -> Scene
         nerf_margin = (margin.object_units * _largest_scale(matrix) + margin.world_units) * frame.scale
         if margin.reasons and nerf_margin >= scene_parts.margin_reasons.get(name, (0.0, ""))[0]:
             scene_parts.margin_reasons[name] = (nerf_margin, "; ".join(margin.reasons))  # its largest instance
+        regions = [region_of.get(name, 0) for name in slot_materials(obj)]
         if margin.fill_box is None and obj.type in MESHABLE_TYPES:
-            scene_parts.triangles.setdefault(nerf_margin, []).append(_nerf_triangles(obj, matrix, frame))
+            triangles, slots = _nerf_triangles(obj, matrix, frame)
+            # A slot index past the object's slots renders with none (Blender's own rule).
+            by_triangle = np.array(regions + [region_of.get(NO_MATERIAL, 0)], np.int64)[
+                np.minimum(slots, len(regions))]
+            for region in np.unique(by_triangle).tolist():
+                scene_parts.triangles.setdefault((nerf_margin, region), []).append(triangles[by_triangle == region])
             continue
         low, high = _nerf_box(obj, matrix, frame)
         if margin.fill_box is not None:
@@ -95,7 +107,7 @@ def collect_parts(view_layer: "bpy.types.ViewLayer", frame: Similarity) -> Scene
         else:
             scene_parts.filled_boxes[name] = (f"a {obj.type} object, which to_mesh cannot measure: "
                                               "its evaluated bounding box")
-        scene_parts.boxes.setdefault(nerf_margin, []).append(np.stack([low, high]))
+        scene_parts.boxes.setdefault((nerf_margin, max(regions)), []).append(np.stack([low, high]))
     return scene_parts
 
 
@@ -106,8 +118,14 @@ def prior_record(occupancy: Occupancy, scene_parts: SceneParts) -> dict[str, Any
     for name, (margin, why) in sorted(scene_parts.margin_reasons.items()):
         reasons.append(f"{name}: +{margin_in_cells(margin, grid.cell_size)} cells "
                        f"({margin:.4g} NeRF units): {why}")
+    surface_cells = max(int(occupancy.surface.sum()), 1)
+    counts = np.bincount(occupancy.regions.ravel(), minlength=len(APPEARANCE_REGIONS))
     return {
         "file": PRIOR_NAME,
+        # Each appearance region's share of the surface cells (the npz's `regions`; a cell two
+        # regions share holds the later of APPEARANCE_REGIONS).
+        "regions": {name: float(counts[index]) / surface_cells
+                    for index, name in enumerate(APPEARANCE_REGIONS) if index and counts[index]},
         "resolution": list(grid.shape),
         "box_min": [float(value) for value in grid.box_min],
         "box_max": [float(value) for value in grid.box_max],
@@ -120,8 +138,9 @@ def prior_record(occupancy: Occupancy, scene_parts: SceneParts) -> dict[str, Any
     }
 
 
-def _nerf_triangles(obj: "bpy.types.Object", matrix: Any, frame: Similarity) -> np.ndarray:
-    """[T, 3, 3] the evaluated mesh's triangles (loop triangles) in the NeRF frame."""
+def _nerf_triangles(obj: "bpy.types.Object", matrix: Any, frame: Similarity) -> tuple[np.ndarray, np.ndarray]:
+    """[T, 3, 3] the evaluated mesh's triangles (loop triangles) in the NeRF frame, and [T] the
+    material slot index of each."""
     mesh = obj.to_mesh()
     try:
         if hasattr(mesh, "calc_loop_triangles"):  # needed before Blender 4.x computes them on access
@@ -130,11 +149,14 @@ def _nerf_triangles(obj: "bpy.types.Object", matrix: Any, frame: Similarity) -> 
         mesh.vertices.foreach_get("co", vertices)
         corners = np.empty(3 * len(mesh.loop_triangles), np.int32)
         mesh.loop_triangles.foreach_get("vertices", corners)
+        slots = np.empty(len(mesh.loop_triangles), np.int32)
+        mesh.loop_triangles.foreach_get("material_index", slots)
     finally:
         obj.to_mesh_clear()
     to_nerf = _to_nerf_matrix(matrix, frame)
     points = vertices.reshape(-1, 3).astype(np.float64) @ to_nerf[:3, :3].T + to_nerf[:3, 3]
-    return points[corners].reshape(-1, 3, 3)
+    return points[corners].reshape(-1, 3, 3), slots
+
 
 
 def _nerf_box(obj: "bpy.types.Object", matrix: Any, frame: Similarity) -> tuple[np.ndarray, np.ndarray]:

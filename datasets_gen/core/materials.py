@@ -100,6 +100,9 @@ class MaterialProfile:
     objects: list[str] = field(default_factory=list)
     #: What the surface is made of (``appearance_facts``).
     appearance: dict[str, Any] = field(default_factory=dict)
+    #: Its appearance region (one of ``APPEARANCE_REGIONS``) and why (``appearance_region``).
+    region: str = "diffuse"
+    region_reason: str = ""
 
     def record(self) -> dict[str, Any]:
         return asdict(self)
@@ -230,7 +233,60 @@ def classify_material(description: Mapping[str, Any]) -> MaterialProfile:
     profile.view_dependent = bool(profile.reasons)
     profile.transparent = bool(profile.transparency_reasons)
     profile.appearance = appearance_facts(description)
+    transmitting = [f"{TRANSPARENT_NODES[node['type']]} {node.get('name', '')!r}"
+                    for node in description.get("nodes", ()) if node.get("type") in TRANSMITTING_NODES]
+    profile.region, profile.region_reason = appearance_region(profile, transmitting)
     return profile
+
+
+#: Shader nodes that send light through a surface (besides the Principled BSDF's transmission).
+TRANSMITTING_NODES = {"BSDF_GLASS", "BSDF_REFRACTION"}
+#: Metallic at or above this counts as metal (Blender's own presets use 0 or 1).
+METAL_FROM = 0.5
+
+
+def _present(fact: Optional[Mapping[str, Any]]) -> Optional[str]:
+    """A Principled input fact in words where it makes a lobe (a value above zero, or one that
+    varies: a texture may raise it), else None."""
+    if not fact:
+        return None
+    if "varies" in fact:
+        return f"varies ({fact['varies']})"
+    value = fact.get("value")
+    return f"{value:g}" if isinstance(value, (int, float)) and value > 0 else None
+
+
+def appearance_region(profile: MaterialProfile, transmitting: Sequence[str] = ()) -> tuple[str, str]:
+    """The material's appearance region (``nerf_contract.dataset_layout.APPEARANCE_REGIONS``)
+    and why, from its verdicts and facts: ``transmissive`` where light passes through it
+    (transmission, or ``transmitting``: its glass and refraction BSDFs, in words), ``thin_film`` where it has a thin film,
+    ``metal`` where metallic is METAL_FROM or more (or varies), ``glossy`` where anything else
+    in it depends on the view, ``diffuse`` where nothing does. The first that holds wins, as
+    the prior keeps the later region where two share a cell.
+
+    Example:
+        >>> glass = classify_material({"name": "Glass", "nodes": [{"type": "BSDF_PRINCIPLED", "inputs": {
+        ...     "Transmission Weight": {"value": 1.0, "linked": False}}}]})
+        >>> glass.region, glass.region_reason
+        ('transmissive', 'transmission 1')
+        >>> classify_material({"name": "Clay", "uses_nodes": False}).region
+        'diffuse'
+    """
+    inputs = profile.appearance.get("inputs", {})
+    transmission = _present(inputs.get("transmission"))
+    if transmission:
+        return "transmissive", f"transmission {transmission}"
+    if transmitting:
+        return "transmissive", transmitting[0]
+    film = _present(inputs.get("thin_film_thickness"))
+    if film:
+        return "thin_film", f"thin film {film} nm"
+    metallic = inputs.get("metallic") or {}
+    if "varies" in metallic or (isinstance(metallic.get("value"), (int, float)) and metallic["value"] >= METAL_FROM):
+        return "metal", f"metallic {_present(metallic)}"
+    if profile.view_dependent:
+        return "glossy", profile.reasons[0]
+    return "diffuse", "nothing in it depends on the view"
 
 
 def choose_output_node(outputs: Sequence[Mapping[str, Any]], engine_target: str = "CYCLES") -> Optional[int]:

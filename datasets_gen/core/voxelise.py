@@ -35,7 +35,8 @@ class Part:
     """Geometry sharing one margin, in the NeRF frame.
 
     `triangles` [T, 3, 3] (triangle, corner, xyz); `boxes` [B, 2, 3] (box, min/max, xyz) are
-    filled whole; `margin` (NeRF units, >= 0) is added on top of the base margin.
+    filled whole; `margin` (NeRF units, >= 0) is added on top of the base margin; `region`
+    is what its surface is made of, an index into `APPEARANCE_REGIONS` (0: not classified).
 
     >>> Part(np.zeros((0, 3, 3)), margin=0.1).margin
     0.1
@@ -44,6 +45,7 @@ class Part:
     triangles: np.ndarray
     boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))
     margin: float = 0.0
+    region: int = 0
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(low, high) of its triangles and boxes grown by its margin, or None when empty.
@@ -261,20 +263,23 @@ def _sweep(reach: np.ndarray, empty: np.ndarray, axis: int) -> np.ndarray:
 
 @dataclass
 class Occupancy:
-    """The prior: `surface` (marked cells, dilated) and `solid` (plus what they enclose)."""
+    """The prior: `surface` (marked cells, dilated) and `solid` (plus what they enclose), and
+    `regions` (uint8): the appearance region of the surface in each surface cell, the largest
+    index of the parts that mark it (0 elsewhere)."""
 
     grid: Grid
     surface: np.ndarray
     solid: np.ndarray
+    regions: np.ndarray
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The npz content: surface, solid, box_min, box_max, cell_size.
+        """The npz content: surface, solid, regions, box_min, box_max, cell_size.
 
         >>> sorted(voxelise([Part(np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 1]]], float))], 32).arrays())
-        ['box_max', 'box_min', 'cell_size', 'solid', 'surface']
+        ['box_max', 'box_min', 'cell_size', 'regions', 'solid', 'surface']
         """
-        return {"surface": self.surface, "solid": self.solid, "box_min": self.grid.box_min,
-                "box_max": self.grid.box_max, "cell_size": np.float64(self.grid.cell_size)}
+        return {"surface": self.surface, "solid": self.solid, "regions": self.regions,
+                "box_min": self.grid.box_min, "box_max": self.grid.box_max, "cell_size": np.float64(self.grid.cell_size)}
 
 
 def margin_in_cells(margin: float, cell_size: float) -> int:
@@ -308,16 +313,19 @@ def voxelise(parts: Sequence[Part], resolution: int = DEFAULT_RESOLUTION,
     # Dilation (1 + base), one more for rounding a part's margin up to cells, one empty layer
     # for the flood fill, one for floor() at the high end.
     grid = choose_grid(low, high, resolution, base_margin_cells + 4)
-    by_margin: dict[int, np.ndarray] = {}
+    by_margin: dict[tuple[int, int], np.ndarray] = {}  # (cells of dilation, region) -> marks
     for part in parts:
         cells = 1 + base_margin_cells + margin_in_cells(part.margin, grid.cell_size)
-        marked = by_margin.setdefault(cells, np.zeros(grid.shape, bool))
+        marked = by_margin.setdefault((cells, part.region), np.zeros(grid.shape, bool))
         mark_triangles(marked, grid, part.triangles)
         mark_boxes(marked, grid, part.boxes)
     surface = np.zeros(grid.shape, bool)
-    for cells, marked in by_margin.items():
-        surface |= dilate(marked, cells)
-    return Occupancy(grid, surface, ~outside(surface))
+    regions = np.zeros(grid.shape, np.uint8)
+    for (cells, region), marked in by_margin.items():
+        grown = dilate(marked, cells)
+        surface |= grown
+        np.maximum(regions, np.where(grown, np.uint8(region), np.uint8(0)), out=regions)
+    return Occupancy(grid, surface, ~outside(surface), regions)
 
 
 def box_triangles(low: Iterable[float], high: Iterable[float]) -> np.ndarray:
