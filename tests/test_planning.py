@@ -119,6 +119,16 @@ def test_the_users_set_wins_and_the_plan_says_what_the_rule_would_have_chosen(ti
     assert "plenoxels.resolution" not in plan.decisions and "initial_resolution" in plan.decisions  # its own grid's
 
 
+@pytest.mark.parametrize(("minutes", "deferred"), [(10, True), (29.9, True), (30, False), (60, False)])
+def test_auto_defers_colour_but_for_budgets_that_grow_the_finest_grid(tiny_demo_dataset, tmp_path, minutes, deferred):
+    """lego at 800×800: deferred colour 0.51 dB ahead after 10 minutes, 0.11 dB behind after 30
+    (docs/benchmarks_lego.md, "Deferred colour"): per-sample colour from LONG_BUDGET_SECONDS on."""
+    _, plan = _plan(tiny_demo_dataset, tmp_path / str(minutes), preset="auto", max_seconds=60.0 * minutes)
+    decision = plan.decisions["colour"]
+    assert plan.config.grid.deferred_colour is deferred and decision["value"] is deferred
+    assert ("once a ray" if deferred else f"a budget of {minutes:g} minutes (at least 30)") in decision["reason"]
+
+
 def test_a_budget_and_views_are_planned_from_the_request(tiny_demo_dataset, tmp_path):
     _, plan = _plan(tiny_demo_dataset, tmp_path, preset="fast", iterations=50, overrides=("max_train_views=10",))
     assert (plan.config.iterations, plan.stop_at_iterations, plan.max_seconds) == (50, True, None)

@@ -31,7 +31,7 @@ from ..model_components.ray_bounds import choose_ray_bounds
 from ..models.marched import FIT_MAX_KEPT, REFIT_MAX_KEPT
 from ..models.registry import model_class
 from .facts import RunFacts, RunRequest, starting_settings
-from .footprint import MIN_RESOLUTION, finest_resolution, pixel_footprint, pixel_resolution
+from .footprint import LONG_BUDGET_SECONDS, MIN_RESOLUTION, finest_resolution, pixel_footprint, pixel_resolution
 from .plan import Proposal, Rule, RunPlan, plan_run
 
 # --- measured choices ---------------------------------------------------------------------
@@ -58,6 +58,11 @@ DEFERRED_COLOUR_REASON = (
     "800×800 on 2 CPU cores, 33.71 dB after 10 minutes against per-sample colour's 33.20 (15 478 steps against "
     "10 139) and eval 1.04 s a view against 1.21; on the 100×100 suite after 120 s ahead on 8 of 9 scenes (+0.02 to "
     "+0.90 dB), 0.15 dB behind on 20_specular (docs/benchmarks_lego.md, \"Deferred colour\")")
+PER_SAMPLE_COLOUR_REASON = (
+    "the colour network run on each sample: a budget of {minutes:g} minutes (at least {long:g}) grows the grid up to "
+    "its finest, where per-sample colour measured better on lego at 800×800 on 2 CPU cores after 30 minutes: "
+    "35.26 dB against deferred colour's 35.15 (31 950 steps against 35 717), eval 1.43 s a view against 1.50 "
+    "(docs/benchmarks_lego.md, \"Deferred colour\")")
 # Steps a time budget must still allow (at the run's rate so far) for the grid's last growth:
 # RobotExpressive at 800×800 without a prior had about 1 000 left at 60 s (the coarser grid then
 # better) and 2 200 at 120 s (the final grid as good); held back with 60 s, three real scenes
@@ -260,15 +265,22 @@ def auto_view_dependence(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
 
 
 def auto_colour(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
-    """Colour deferred to once a ray (measured against per-sample colour at equal time).
+    """Colour deferred to once a ray, but for time budgets long enough to grow the grid to its
+    finest (LONG_BUDGET_SECONDS): measured against per-sample colour at equal time, each way.
 
     Example:
         >>> facts, plan = _example()
         >>> next(auto_colour(facts, plan)).value
         True
     """
-    if _auto(facts, plan):
-        yield Proposal("colour", "grid.deferred_colour", True, DEFERRED_COLOUR_REASON)
+    if not _auto(facts, plan):
+        return
+    seconds = plan.schedule_seconds
+    if seconds is not None and seconds >= LONG_BUDGET_SECONDS:
+        yield Proposal("colour", "grid.deferred_colour", False,
+                       PER_SAMPLE_COLOUR_REASON.format(minutes=seconds / 60, long=LONG_BUDGET_SECONDS / 60))
+        return
+    yield Proposal("colour", "grid.deferred_colour", True, DEFERRED_COLOUR_REASON)
 
 
 def auto_grid_resolution(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
