@@ -148,7 +148,7 @@ def test_a_translucent_field_overflows_the_sample_buffer_and_is_marched_again(li
 def test_without_a_compiler_the_reason_is_given_and_nothing_is_cached(tmp_path, monkeypatch):
     monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
     monkeypatch.setenv(build.CACHE_VARIABLE, str(tmp_path / "cache"))
-    library, reason = build.load_kernel.__wrapped__("march_render")
+    library, reason = build._load_kernel.__wrapped__("march_render", build.NATIVE_TARGET)
     assert library is None and "no-such-cc" in reason and "march_render.c" in reason
     assert not list((tmp_path / "cache").glob("*.so"))
 
@@ -157,18 +157,18 @@ def test_a_missing_source_is_a_reason_not_a_crash(tmp_path, monkeypatch):
     """A partial install (an extension zip that left a kernel out) still trains and renders
     through PyTorch: the missing file is named, nothing is raised."""
     monkeypatch.setattr(build, "SOURCES", tmp_path)
-    library, reason = build.load_kernel.__wrapped__("march_render")
+    library, reason = build._load_kernel.__wrapped__("march_render", build.NATIVE_TARGET)
     assert library is None and str(tmp_path / "march_render.c") in reason and "cannot be read" in reason
 
 
 def test_a_kernel_is_built_once_into_the_cache(tmp_path, monkeypatch):
     monkeypatch.setenv(build.CACHE_VARIABLE, str(tmp_path))
-    first, reason = build.load_kernel.__wrapped__("march_render")
+    first, reason = build._load_kernel.__wrapped__("march_render", build.NATIVE_TARGET)
     assert first is not None, reason
     built = list(tmp_path.glob("march_render-*.so"))
     assert len(built) == 1 and not [p for p in tmp_path.iterdir() if p.is_dir()]  # no scratch left
     stamp = built[0].stat().st_mtime_ns
-    second, _ = build.load_kernel.__wrapped__("march_render")
+    second, _ = build._load_kernel.__wrapped__("march_render", build.NATIVE_TARGET)
     assert second is not None and built[0].stat().st_mtime_ns == stamp
 
 
