@@ -90,7 +90,7 @@ def collect_parts(view_layer: "bpy.types.ViewLayer", frame: Similarity,
         nerf_margin = (margin.object_units * _largest_scale(matrix) + margin.world_units) * frame.scale
         if margin.reasons and nerf_margin >= scene_parts.margin_reasons.get(name, (0.0, ""))[0]:
             scene_parts.margin_reasons[name] = (nerf_margin, "; ".join(margin.reasons))  # its largest instance
-        regions = [region_of.get(name, 0) for name in slot_materials(obj)]
+        regions = [region_of.get(material, 0) for material in slot_materials(obj)]
         if margin.fill_box is None and obj.type in MESHABLE_TYPES:
             triangles, slots = _nerf_triangles(obj, matrix, frame)
             # A slot index past the object's slots renders with none (Blender's own rule).
@@ -156,7 +156,6 @@ def _nerf_triangles(obj: "bpy.types.Object", matrix: Any, frame: Similarity) -> 
     to_nerf = _to_nerf_matrix(matrix, frame)
     points = vertices.reshape(-1, 3).astype(np.float64) @ to_nerf[:3, :3].T + to_nerf[:3, 3]
     return points[corners].reshape(-1, 3, 3), slots
-
 
 
 def _nerf_box(obj: "bpy.types.Object", matrix: Any, frame: Similarity) -> tuple[np.ndarray, np.ndarray]:
