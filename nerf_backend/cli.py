@@ -8,7 +8,7 @@ import argparse
 import shlex
 import sys
 
-from .commands import COMMANDS
+from .commands import COMMANDS, command_module
 from .core.errors import NerfError
 
 
@@ -22,12 +22,14 @@ class _DefaultsShown(argparse.HelpFormatter):
         return f"{text} (default: %(default)s)"
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The whole command line, or with ``only`` (a command's name) that command's part alone,
+    so that only its module is imported."""
     parser = argparse.ArgumentParser(prog="python -m nerf_backend",
                                      description="Train, render, score and benchmark NeRFs of Blender scenes.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
     sub = parser.add_subparsers(dest="command", required=True)
-    for command in COMMANDS:
+    for command in map(command_module, [only] if only else COMMANDS):
         command_parser = sub.add_parser(command.NAME, help=command.HELP, formatter_class=_DefaultsShown)
         command.add_arguments(command_parser)
         command_parser.set_defaults(run_command=command.run)
@@ -50,9 +52,21 @@ def _one_line(exc: NerfError | OSError) -> str:
     return message.replace("\r", "\\r").replace("\n", "\\n")
 
 
+def _chosen_command(argv: list[str]) -> str | None:
+    """The command ``argv`` names (its first word that is not an option), if it is one; else
+    None, and the whole command line is built (for its help, or to name the choices)."""
+    words = [word for word in argv if not word.startswith("-")]
+    return words[0] if words and words[0] in COMMANDS else None
+
+
+def parse_arguments(argv: list[str]) -> argparse.Namespace:
+    """``argv`` read as ``main`` reads it: with the chosen command's part of the command line."""
+    return build_parser(_chosen_command(argv)).parse_args(argv)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    args = build_parser().parse_args(argv)
+    args = parse_arguments(argv)
     # Recorded in the bench's tables with the commit, so a figure can be made again.
     args.command_line = shlex.join(["python", "-m", "nerf_backend", *argv])
     try:

@@ -6,18 +6,36 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import subprocess
+import sys
 
 import pytest
 
 from datasets_gen.cli import build_parser as generator_parser
 from datasets_gen.core.options import options_from_keywords, options_to_argv
 from nerf_backend.cli import build_parser as backend_parser
+from nerf_backend.cli import parse_arguments
+from nerf_backend.commands import COMMANDS, command_module
 from nerf_contract import commands, training_events
 from nerf_contract.commands import BackendFlag, GeneratorFlag
 
 
 def _backend(argv):
-    return backend_parser().parse_args(argv)
+    return parse_arguments(argv)  # as python -m nerf_backend reads it: the command's own parser
+
+
+def test_each_command_is_the_module_it_names_and_a_process_imports_only_its_own():
+    """A process builds only its command's parser and imports only that command's module (the
+    others' imports cost a ``train`` about half a second); ``--help`` alone names them all."""
+    assert [command_module(name).NAME for name in COMMANDS] == list(COMMANDS)
+    probe = ("import sys; from nerf_backend.cli import parse_arguments; "
+             "parse_arguments(['train', 'ds', '--out', 'run']); "
+             "print(*sorted(m for m in sys.modules if m.startswith('nerf_backend.commands.') or m in "
+             "('nerf_backend.bench', 'skimage.measure')))")
+    loaded = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
+    assert loaded.split() == ["nerf_backend.commands.arguments", "nerf_backend.commands.train"], loaded
+    with pytest.raises(SystemExit):
+        parse_arguments(["--help"])
 
 
 def test_training_command_lines_parse_as_asked():

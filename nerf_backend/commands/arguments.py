@@ -1,5 +1,5 @@
 """What several commands' parsers share: number types that refuse bad values in one line, and
-the device, CPU threads, seed, LPIPS and bench-page arguments."""
+the device, CPU threads, seed and LPIPS arguments (the bench commands' `--page`: page_option.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ import torch
 
 from nerf_contract.commands import BackendFlag
 
-from ..bench.pages import INDEX_NAME, publish_page
 from ..metrics.lpips_metric import BACKBONE_FILE
 
 DEVICES = ("auto", "cpu", "cuda", "mps")
@@ -58,16 +57,3 @@ def add_lpips_weights(parser: argparse.ArgumentParser) -> None:
                              "downloaded there on first use)")
     parser.add_argument("--lpips-linear", type=Path, default=None,
                         help="LPIPS v0.1 linear-layer weights (default: the ones in the lpips package)")
-
-
-def add_page(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--page", type=Path, default=None, metavar="PAGE.md",
-                        help="also write the table as a docs page (docs/benchmarks/NAME.md: its name the scene and "
-                             "size), with the command and commit, its plot beside it, and that folder's index again")
-
-
-def publish(args: argparse.Namespace, markdown: Path, plot: Path | None = None) -> None:
-    """``--page``'s page of the table ``markdown``, where one was asked for."""
-    if args.page is not None:
-        page = publish_page(markdown, args.page, plot, getattr(args, "command_line", None))
-        print(f"page {page} (index {page.parent / INDEX_NAME})")

@@ -10,7 +10,8 @@ from nerf_contract.commands import BackendFlag
 
 from ..bench import DEFAULT_PRESETS, Variant, ablation_variants, run_bench, run_suite, run_trade
 from ..core.errors import NerfError
-from .arguments import add_device, add_page, add_seed, positive_float, positive_int, publish
+from .arguments import add_device, add_seed, positive_float, positive_int
+from .page_option import add_page, publish
 
 NAME = "bench"
 HELP = "measure the speed/accuracy trade of presets on one dataset, or on every dataset of a suite (--suite)"

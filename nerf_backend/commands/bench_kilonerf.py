@@ -11,7 +11,8 @@ from nerf_contract.commands import BackendFlag
 
 from ..bench.kilonerf import kilonerf_trade
 from ..core.devices import resolve_device
-from .arguments import add_device, add_page, positive_float, positive_int, publish
+from .arguments import add_device, positive_float, positive_int
+from .page_option import add_page, publish
 
 NAME = "bench-kilonerf"
 HELP = "KiloNeRF against the product's renderer: the run distilled into tiny networks, PSNR and time a frame"

@@ -14,7 +14,8 @@ from ..configs.presets import preset_config
 from ..core.errors import NerfError
 from ..models.marched import MarchedModel
 from ..models.registry import model_class
-from .arguments import add_device, add_page, add_seed, positive_float, positive_int, publish
+from .arguments import add_device, add_seed, positive_float, positive_int
+from .page_option import add_page, publish
 
 NAME = "bench-step"
 HELP = ("a NeRF preset's seconds per iteration against a plain PyTorch implementation of the same maths; a "

@@ -12,7 +12,8 @@ from nerf_contract.commands import BackendFlag
 from ..bench.view_speed import view_speed
 from ..core.devices import resolve_device
 from ..core.errors import NerfError
-from .arguments import add_device, add_page, positive_float, positive_int, publish
+from .arguments import add_device, positive_float, positive_int
+from .page_option import add_page, publish
 
 NAME = "bench-view"
 HELP = "how fast the live view answers: the render server's start, frames a second while orbiting, the whole frame"
