@@ -32,7 +32,7 @@ demo: $(STAMP)
 # each at a time: most tests train small models whose steps are bound by Python's overhead on
 # one core, so two at once finish in about two thirds of the time of one after the other.
 test: $(STAMP)
-	$(PY) -m pytest -m "not slow and not blender_matrix and not gui" -n 2 --dist loadfile --durations=15
+	$(PY) -m pytest -m "not slow and not blender_matrix and not gui" -n 2 --dist loadfile --no-loadscope-reorder --durations=15
 
 # The add-on in the other Blenders users run, CI's second step: the bpy 4.2 LTS and 4.5 LTS
 # modules (Python 3.11), each in .venv-bpy/VERSION, and 5.1 and 5.2 LTS (Python 3.13, in the
