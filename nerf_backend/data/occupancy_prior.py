@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from nerf_contract.dataset_layout import PROFILE_NAME
+from nerf_contract.dataset_layout import APPEARANCE_REGIONS, PROFILE_NAME
 
 from ..core.errors import DatasetError
 
@@ -53,6 +53,9 @@ class OccupancyPrior:
     # Beside a solid prior, its surface cells (the file holds both): with them the surface
     # field knows on which side of the surface each unmarked cell lies (surface_band.py).
     surface_cells: Tensor | None = None
+    # What the surface in each cell is made of (uint8 ``[nx, ny, nz]``, an index of
+    # ``APPEARANCE_REGIONS``; 0 where no surface was classified), from the scene's materials.
+    regions: Tensor | None = None
 
     @property
     def box_max(self) -> tuple[float, float, float]:
@@ -72,14 +75,44 @@ class OccupancyPrior:
         """``[Gx, Gy, Gz]`` bool: the cells of a grid over ``[box_min, box_max]`` that overlap
         or touch a marked prior cell (closed cells: geometry on a shared face belongs to
         both). Cells outside the prior's box hold nothing."""
+        return self._overlapping(self.occupied, box_min, box_max, cells)
+
+    def region_cells(self, box_min: tuple[float, ...], box_max: tuple[float, ...], cells: tuple[int, int, int]) -> Tensor:
+        """``[Gx, Gy, Gz]`` uint8: for each cell of a grid over ``[box_min, box_max]``, the
+        region (an index of ``APPEARANCE_REGIONS``) of the prior cells it overlaps or touches,
+        the latest where they differ: a cell that holds a diffuse and a glossy surface needs the
+        glossy one's view dependence. 0 where it overlaps none; all 0 without ``regions``.
+
+        Example:
+            >>> import torch
+            >>> prior = OccupancyPrior(torch.ones(2, 1, 1, dtype=torch.bool), (0.0, 0.0, 0.0), 1.0, "surface",
+            ...                        regions=torch.tensor([1, 2], dtype=torch.uint8).view(2, 1, 1))
+            >>> prior.region_cells((0.0, 0.0, 0.0), (2.0, 1.0, 1.0), (5, 1, 1)).view(-1).tolist()
+            [1, 1, 2, 2, 2]
+            >>> prior.region_cells((0.0, 0.0, 0.0), (2.0, 1.0, 1.0), (3, 1, 1)).view(-1).tolist()  # the middle one holds both
+            [1, 2, 2]
+        """
+        out = torch.zeros(cells, dtype=torch.uint8)
+        if self.regions is None:
+            return out
+        for region in range(1, len(APPEARANCE_REGIONS)):  # later regions overwrite earlier ones
+            mask = self.regions == region
+            if bool(mask.any()):
+                out[self._overlapping(mask, box_min, box_max, cells)] = region
+        return out
+
+    def _overlapping(self, mask: Tensor, box_min: tuple[float, ...], box_max: tuple[float, ...],
+                     cells: tuple[int, int, int]) -> Tensor:
+        """``[Gx, Gy, Gz]`` bool: the grid's cells that overlap or touch a cell set in ``mask``
+        (a bool array of the prior's shape)."""
         # A summed-volume table answers "any marked cell in this index box" in O(1) a cell.
-        table = torch.zeros(tuple(n + 1 for n in self.occupied.shape), dtype=torch.int64)
-        table[1:, 1:, 1:] = self.occupied.long().cumsum(0).cumsum(1).cumsum(2)
+        table = torch.zeros(tuple(n + 1 for n in mask.shape), dtype=torch.int64)
+        table[1:, 1:, 1:] = mask.long().cumsum(0).cumsum(1).cumsum(2)
         ranges = []
         for axis in range(3):
             edges = torch.linspace(box_min[axis], box_max[axis], cells[axis] + 1, dtype=torch.float64)
             u = (edges - self.box_min[axis]) / self.cell_size  # model cell edges in prior cells
-            n = self.occupied.shape[axis]
+            n = mask.shape[axis]
             start = torch.floor(u[:-1] - _TOUCH).clamp(0, n).long()
             stop = torch.ceil(u[1:] + _TOUCH).clamp(0, n).long()
             ranges.append((start, stop))
@@ -115,6 +148,7 @@ def load_occupancy_prior(dataset_dir: Path | str, kind: str) -> OccupancyPrior |
         with np.load(path, allow_pickle=False) as data:
             occupied = np.asarray(data[kind])
             surface_cells = np.asarray(data["surface"]) if kind == "solid" and "surface" in data.files else None
+            regions = np.asarray(data["regions"]) if "regions" in data.files else None  # written since issue 60
             box_min = np.asarray(data["box_min"], dtype=np.float64)
             cell_size = float(np.asarray(data["cell_size"]))
     except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as exc:
@@ -124,6 +158,13 @@ def load_occupancy_prior(dataset_dir: Path | str, kind: str) -> OccupancyPrior |
     if surface_cells is not None and (surface_cells.dtype != np.bool_ or surface_cells.shape != occupied.shape):
         raise DatasetError(f"{path}: 'surface' must be a bool array of the shape of 'solid' {occupied.shape}, "
                            f"got {surface_cells.dtype} {surface_cells.shape}")
+    if regions is not None:
+        if regions.dtype != np.uint8 or regions.shape != occupied.shape:
+            raise DatasetError(f"{path}: 'regions' must be a uint8 array of the shape of '{kind}' {occupied.shape}, "
+                               f"got {regions.dtype} {regions.shape}")
+        if int(regions.max(initial=0)) >= len(APPEARANCE_REGIONS):
+            raise DatasetError(f"{path}: 'regions' holds {int(regions.max())}, not an index of the "
+                               f"{len(APPEARANCE_REGIONS)} regions ({', '.join(APPEARANCE_REGIONS)})")
     if box_min.shape != (3,) or not np.isfinite(box_min).all() or not (math.isfinite(cell_size) and cell_size > 0):
         raise DatasetError(f"{path}: 'box_min' must be 3 finite numbers and 'cell_size' a positive number")
     margin = record.get("margin")
@@ -132,4 +173,5 @@ def load_occupancy_prior(dataset_dir: Path | str, kind: str) -> OccupancyPrior |
         raise DatasetError(f"{profile_path}: 'occupancy_prior' 'margin' 'cells' must be a whole number of cells, "
                            f"got {margin_cells!r}")
     return OccupancyPrior(torch.from_numpy(occupied.copy()), tuple(box_min.tolist()), cell_size, kind,  # type: ignore[arg-type]
-                          margin_cells, None if surface_cells is None else torch.from_numpy(surface_cells.copy()))
+                          margin_cells, None if surface_cells is None else torch.from_numpy(surface_cells.copy()),
+                          None if regions is None else torch.from_numpy(regions.copy()))
