@@ -162,6 +162,19 @@ def test_trap_scenes_are_what_they_say(tiny_suite):
     assert any("metallic 1" in r for r in materials["chrome"]["reasons"])
     assert not materials["base"]["view_dependent"]  # the base is diffuse
 
+    # The material traps: the surface each stands for is a region of its profile and of its
+    # prior's cells, beside its diffuse base or board.
+    for name, region, material in (("glass_over_checker", "transmissive", "glass"), ("mirror_in_room", "metal", "silver"),
+                                   ("rough_in_room", "metal", "silver"), ("thin_film_coat", "thin_film", "soap film")):
+        shares = profiles[name]["occupancy_prior"]["regions"]
+        assert set(shares) == {region, "diffuse"} and shares[region] > 0.1, (name, shares)
+        found = {m["name"]: m for m in profiles[name]["materials"]}[material]
+        assert found["region"] == region and found["view_dependent"], (name, found)
+    roughness = {name: {m["name"]: m for m in profiles[name]["materials"]}["silver"]["appearance"]["inputs"]["roughness"]["value"]
+                 for name in ("mirror_in_room", "rough_in_room")}
+    # The same objects in two finishes (Blender keeps the values in single precision).
+    assert roughness == pytest.approx({"mirror_in_room": 0.03, "rough_in_room": 0.45}, abs=1e-6), roughness
+
 
 def _profile_from_check(*args: str) -> str:
     stdout = run_python("-m", "datasets_gen", *args, "--check", *TINY).stdout

@@ -13,8 +13,12 @@ from .demo_scene import build_demo_scene
 from .trap_scenes import (
     build_bright_object,
     build_glass_and_gloss,
+    build_glass_over_checker,
     build_ground_plane,
+    build_mirror_in_room,
     build_off_centre,
+    build_rough_in_room,
+    build_thin_film_coat,
     build_thin_structure,
 )
 
@@ -26,6 +30,10 @@ BUILDERS: dict[str, Callable[[], bpy.types.Scene]] = {
     "off_centre": build_off_centre,
     "ground_plane": build_ground_plane,
     "glass_and_gloss": build_glass_and_gloss,
+    "glass_over_checker": build_glass_over_checker,
+    "mirror_in_room": build_mirror_in_room,
+    "rough_in_room": build_rough_in_room,
+    "thin_film_coat": build_thin_film_coat,
 }
 assert BUILDERS.keys() == BUILTIN_SCENES.keys(), "every registered scene has a builder, and no other"
 

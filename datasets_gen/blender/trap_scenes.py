@@ -22,6 +22,17 @@ plane sets its scale.  At 100x100 the protocol camera sees 2.9 units across at t
 * `glass_and_gloss`: a glass sphere and a glass cube (transmission 1, IOR 1.45), a chrome
   sphere and a copper torus (metallic, roughness 0.05 and 0.15) on a small diffuse base.
 
+The material traps (issue 60), each with one kind of surface whose colour changes with the view:
+
+* `glass_over_checker`: a clear glass sphere (radius 0.55, transmission 1, IOR 1.45) resting
+  on a black-and-white checkerboard plate (a Diffuse BSDF): the board seen through the glass,
+  refracted and flipped, moves with the view.
+* `mirror_in_room` and `rough_in_room`: the same metal sphere and torus (metallic 1) on a
+  diffuse base, under a world of coloured tiles (`room_world`: every reflection shows a
+  pattern), roughness 0.03 (a mirror) and 0.45 (blurred reflections).
+* `thin_film_coat`: a dark glossy sphere and torus coated with a thin film (450 and 300 nm, IOR
+  1.33; Blender 4.2 and later): iridescent colours that shift with the view.
+
 Built with the demo's helpers (`demo_scene`), with the data API only; deterministic.
 """
 
@@ -33,6 +44,7 @@ import bmesh
 import bpy
 from mathutils import Matrix, Vector
 
+from .compat import node_tree_of, principled_bsdf, set_node_input
 from .demo_scene import (
     add_object,
     add_sun,
@@ -171,3 +183,81 @@ def build_glass_and_gloss(name: str = "NeRF glass_and_gloss") -> "bpy.types.Scen
     add_sun(scene, name, energy=3.0, rotation_x_deg=40.0, rotation_z_deg=30.0)
     return _finish(scene)
 
+
+
+def room_world(name: str) -> "bpy.types.World":
+    """An environment of coloured tiles (a checker on the direction, `NAME world`): a polished
+    surface reflects a pattern from every direction, as a textured room would, while the
+    transparent film never shows it directly."""
+    world = plain_world(name, (1.0, 1.0, 1.0), 1.0)
+    tree = node_tree_of(world)
+    coordinates = tree.nodes.new("ShaderNodeTexCoord")
+    checker = tree.nodes.new("ShaderNodeTexChecker")
+    checker.inputs["Color1"].default_value = (0.85, 0.55, 0.25, 1.0)
+    checker.inputs["Color2"].default_value = (0.20, 0.35, 0.75, 1.0)
+    checker.inputs["Scale"].default_value = 3.0
+    tree.links.new(coordinates.outputs["Generated"], checker.inputs["Vector"])
+    background = next(node for node in tree.nodes if node.type == "BACKGROUND")
+    tree.links.new(checker.outputs["Color"], background.inputs["Color"])
+    return world
+
+
+def build_glass_over_checker(name: str = "NeRF glass_over_checker") -> "bpy.types.Scene":
+    scene = new_protocol_scene(name)
+    scene.world = plain_world(name, SKY, 0.6)
+    board = add_object(scene, "checkerboard", cube_mesh("checkerboard", 2.0), (0.0, 0.0, -0.55))
+    board.scale = (1.0, 1.0, 0.04)
+    assign(board, textured_material("checker", "ShaderNodeTexChecker", (0.9, 0.9, 0.9), (0.05, 0.05, 0.05), 8.0,
+                                    diffuse=True))
+    ball = add_object(scene, "glass sphere", sphere_mesh("glass sphere", 0.55), (0.0, 0.0, -0.51 + 0.55))
+    assign(ball, make_material("glass", (1.0, 1.0, 1.0), roughness=0.0, transmission=1.0, ior=1.45))
+    add_sun(scene, name, energy=3.0, rotation_x_deg=40.0, rotation_z_deg=30.0)
+    return _finish(scene)
+
+
+def _metal_in_room(name: str, roughness: float) -> "bpy.types.Scene":
+    scene = new_protocol_scene(name)
+    scene.world = room_world(name)
+    top = -0.45
+    base = add_object(scene, "base", cylinder_mesh("base", 0.95, 0.14, 96), (0.0, 0.0, top - 0.07))
+    assign(base, make_material("base", (0.50, 0.45, 0.40), roughness=1.0, diffuse=True))
+    ball = add_object(scene, "metal sphere", sphere_mesh("metal sphere", 0.42), (-0.3, -0.15, top + 0.42))
+    assign(ball, make_material("silver", (0.92, 0.92, 0.92), roughness=roughness, metallic=1.0))
+    ring = add_object(scene, "metal torus", torus_mesh("metal torus", 0.28, 0.09), (0.4, 0.35, top + 0.37),
+                      rotation_x_deg=90.0, rotation_z_deg=-30.0)
+    assign(ring, make_material("gold", (0.95, 0.75, 0.40), roughness=roughness, metallic=1.0))
+    return _finish(scene)
+
+
+def build_mirror_in_room(name: str = "NeRF mirror_in_room") -> "bpy.types.Scene":
+    return _metal_in_room(name, roughness=0.03)
+
+
+def build_rough_in_room(name: str = "NeRF rough_in_room") -> "bpy.types.Scene":
+    return _metal_in_room(name, roughness=0.45)
+
+
+def _thin_film(name: str, colour: Sequence[float], thickness_nm: float) -> "bpy.types.Material":
+    material = make_material(name, colour, roughness=0.08)
+    bsdf = principled_bsdf(material)
+    if "Thin Film Thickness" not in bsdf.inputs:
+        raise RuntimeError(f"thin_film_coat needs the Principled BSDF's thin film (Blender 4.2 or later), "
+                           f"not in Blender {bpy.app.version_string}")
+    set_node_input(bsdf, ["Thin Film Thickness"], thickness_nm)
+    set_node_input(bsdf, ["Thin Film IOR"], 1.33)
+    return material
+
+
+def build_thin_film_coat(name: str = "NeRF thin_film_coat") -> "bpy.types.Scene":
+    scene = new_protocol_scene(name)
+    scene.world = plain_world(name, (0.9, 0.9, 0.9), 0.8)
+    top = -0.45
+    base = add_object(scene, "base", cylinder_mesh("base", 0.95, 0.14, 96), (0.0, 0.0, top - 0.07))
+    assign(base, make_material("base", (0.50, 0.45, 0.40), roughness=1.0, diffuse=True))
+    ball = add_object(scene, "coated sphere", sphere_mesh("coated sphere", 0.42), (-0.3, -0.15, top + 0.42))
+    assign(ball, _thin_film("soap film", (0.04, 0.04, 0.05), 450.0))
+    ring = add_object(scene, "coated torus", torus_mesh("coated torus", 0.28, 0.09), (0.4, 0.35, top + 0.37),
+                      rotation_x_deg=90.0, rotation_z_deg=-30.0)
+    assign(ring, _thin_film("oil film", (0.10, 0.08, 0.06), 300.0))
+    add_sun(scene, name, energy=3.0, rotation_x_deg=40.0, rotation_z_deg=30.0)
+    return _finish(scene)

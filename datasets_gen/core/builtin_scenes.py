@@ -52,12 +52,21 @@ _SCENES = (
                  "a large flat surface", "fit"),
     BuiltinScene("glass_and_gloss", "glass (transmission 1, IOR 1.45) and polished metal on a small diffuse "
                  "base: transparency and view dependence", "fit"),
+    BuiltinScene("glass_over_checker", "a clear glass sphere on a checkerboard plate: the board refracted "
+                 "through glass", "fit"),
+    BuiltinScene("mirror_in_room", "a mirror-smooth metal sphere and torus under a tiled world: sharp "
+                 "reflections", "fit"),
+    BuiltinScene("rough_in_room", "mirror_in_room's objects with rough metal (roughness 0.45): blurred "
+                 "reflections", "fit"),
+    BuiltinScene("thin_film_coat", "a dark sphere and torus under a thin-film coat (Blender 4.2+): iridescence",
+                 "fit"),
 )
 
 #: Every built-in scene by name.
 BUILTIN_SCENES: dict[str, BuiltinScene] = {scene.name: scene for scene in _SCENES}
 #: The scenes standing for a known failure class.
-TRAP_SCENES: tuple[str, ...] = ("bright_object", "thin_structure", "off_centre", "ground_plane", "glass_and_gloss")
+TRAP_SCENES: tuple[str, ...] = ("bright_object", "thin_structure", "off_centre", "ground_plane", "glass_and_gloss",
+                                "glass_over_checker", "mirror_in_room", "rough_in_room", "thin_film_coat")
 #: What `--suite` renders besides the given .blend files: the trap scenes and the demo.
 SUITE_BUILTINS: tuple[str, ...] = TRAP_SCENES + ("demo",)
 
