@@ -29,11 +29,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from nerf_contract.dataset_layout import APPEARANCE_REGIONS, PROFILE_NAME
+from nerf_contract.dataset_layout import APPEARANCE_REGIONS, GEOMETRY_NAME, PROFILE_NAME
 
 from ..core.errors import DatasetError
+from ..core.mesh_normals import corner_normals, normal_volume
+from ..core.ply import read_ply
 
 PRIOR_KINDS = ("surface", "solid")
+# Cells along the longest side of ``surface_grid``'s box.
+SURFACE_GRID_RESOLUTION = 128
 # A model cell whose edge lies within this fraction of a prior cell of a marked prior cell
 # counts as overlapping it: float rounding never turns "touching" into "apart".
 _TOUCH = 1e-6
@@ -56,6 +60,8 @@ class OccupancyPrior:
     # What the surface in each cell is made of (uint8 ``[nx, ny, nz]``, an index of
     # ``APPEARANCE_REGIONS``; 0 where no surface was classified), from the scene's materials.
     regions: Tensor | None = None
+    # The dataset's true surface (``scene_geometry.ply``), where it has one: its normals.
+    geometry: Path | None = None
 
     @property
     def box_max(self) -> tuple[float, float, float]:
@@ -100,6 +106,25 @@ class OccupancyPrior:
             if bool(mask.any()):
                 out[self._overlapping(mask, box_min, box_max, cells)] = region
         return out
+
+    def surface_grid(self, resolution: int = SURFACE_GRID_RESOLUTION) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """What the surface is made of and which way it faces, on a coarser grid over the
+        prior's box (``resolution`` cubic cells along its longest side): ``regions`` uint8
+        ``[nx, ny, nz]`` (``region_cells``), the true surface's ``normals`` ``[nx, ny, nz, 3]``
+        (``core.mesh_normals``; zero without ``geometry``), and the grid's corners ``box_min``,
+        ``box_max`` (``[3]`` each)."""
+        low = np.asarray(self.box_min, np.float64)
+        extent = np.asarray(self.box_max, np.float64) - low
+        cell = float(extent.max()) / resolution
+        shape = tuple(max(1, math.ceil(float(side) / cell - 1e-9)) for side in extent)
+        high = low + cell * np.asarray(shape, np.float64)
+        regions = self.region_cells(tuple(low.tolist()), tuple(high.tolist()), shape)  # type: ignore[arg-type]
+        normals = np.zeros((*shape, 3), np.float32)
+        if self.geometry is not None:
+            vertices, faces = read_ply(self.geometry)
+            if len(faces):
+                normals = normal_volume(vertices, faces, corner_normals(vertices, faces), low, cell, shape)  # type: ignore[arg-type]
+        return regions, torch.from_numpy(normals), torch.from_numpy(low).float(), torch.from_numpy(high).float()
 
     def _overlapping(self, mask: Tensor, box_min: tuple[float, ...], box_max: tuple[float, ...],
                      cells: tuple[int, int, int]) -> Tensor:
@@ -174,4 +199,5 @@ def load_occupancy_prior(dataset_dir: Path | str, kind: str) -> OccupancyPrior |
                            f"got {margin_cells!r}")
     return OccupancyPrior(torch.from_numpy(occupied.copy()), tuple(box_min.tolist()), cell_size, kind,  # type: ignore[arg-type]
                           margin_cells, None if surface_cells is None else torch.from_numpy(surface_cells.copy()),
-                          None if regions is None else torch.from_numpy(regions.copy()))
+                          None if regions is None else torch.from_numpy(regions.copy()),
+                          geometry if (geometry := Path(dataset_dir) / GEOMETRY_NAME).is_file() else None)

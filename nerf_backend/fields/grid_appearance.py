@@ -13,7 +13,11 @@ from ..core.field_functions import RayColourFn, ShadeFn
 from ..field_components.compiled_colour import compiled_ray_colour, compiled_ray_features
 from ..field_components.encodings import PositionalEncoding
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
+from ..field_components.surface_facts import SurfaceFacts
 from .base import SampleCost, mlp_flops
+
+# The appearance regions (nerf_contract.dataset_layout.APPEARANCE_REGIONS) by index.
+_DIFFUSE, _GLOSSY, _METAL = 1, 2, 3
 
 
 class GridAppearance:
@@ -25,7 +29,12 @@ class GridAppearance:
     the appearance grid's features, not colours (``sample_appearance``); the march composites
     them along each ray and ``shade_fn`` runs the basis and the network once a ray on their
     weighted mean. The basis is linear, so compositing the grid's features before it is the
-    same as after. A single point's ``colour`` is the network on its own features, as before."""
+    same as after. A single point's ``colour`` is the network on its own features, as before.
+
+    With ``region_appearance`` in the config, the network's direction inputs follow what the
+    scene's surface is made of (``direction_inputs``, from ``surface_facts``: the dataset's
+    prior and true surface, set by the model); with deferred colour each sample carries its
+    direction inputs beside its features, composited alike."""
 
     def build_appearance(self, config, vertices: Vertices, extra_inputs: int = 0) -> None:
         """The appearance grid and MLP; ``extra_inputs``: features of the field's own that
@@ -34,6 +43,10 @@ class GridAppearance:
         self.appearance_basis = nn.Linear(self.appearance_grid.out_dims, config.appearance_dims, bias=False)
         self.direction_encoding = PositionalEncoding(3, config.direction_frequencies)
         colour_in = config.appearance_dims + (self.direction_encoding.out_dims if config.view_dependent else 0)
+        if self.region_aware:
+            self.reflection_encoding = PositionalEncoding(3, config.reflection_frequencies)
+            self.surface_facts = SurfaceFacts()
+            colour_in += self.reflection_encoding.out_dims
         colour_in += extra_inputs
         self.colour_mlp = nn.Sequential(
             nn.Linear(colour_in, config.hidden_width), nn.ReLU(inplace=True),
@@ -45,21 +58,66 @@ class GridAppearance:
         return self.colour_with(x, directions)
 
     @property
+    def region_aware(self) -> bool:
+        """Whether the colour's direction inputs follow the scene's appearance regions."""
+        return bool(getattr(self.config, "region_appearance", False)) and bool(self.config.view_dependent)
+
+    def direction_inputs(self, directions: Tensor, x: Tensor | None = None) -> Tensor | None:
+        """The colour network's direction inputs for samples at ``x`` seen along ``directions``:
+        the view's encoding where the field is view-dependent (None where not); region-aware,
+        that encoding where the region is neither diffuse nor reflective, beside the encoding of
+        the view reflected about the true surface's normal where it is glossy or metal and a
+        normal is known (Ref-NeRF's reflected direction, here from Blender's mesh), and nothing
+        of the view where it is diffuse."""
+        if not self.config.view_dependent:
+            return None
+        view = self.direction_encoding(directions)
+        if not self.region_aware:
+            return view
+        if x is None:
+            raise ValueError("region-aware colour needs the samples' points")
+        region, normal = self.surface_facts.lookup(x)
+        reflective = ((region == _GLOSSY) | (region == _METAL)) & (normal.abs().sum(dim=1) > 0)
+        plain = ~reflective & (region != _DIFFUSE)
+        reflected = directions - 2.0 * (directions * normal).sum(dim=1, keepdim=True) * normal
+        return torch.cat([view * plain[:, None].to(view.dtype),
+                          self.reflection_encoding(reflected) * reflective[:, None].to(view.dtype)], dim=1)
+
+    def match_surface_facts(self, state: dict[str, Tensor]) -> None:
+        """Take the surface facts' shapes from a checkpoint (``match_state``)."""
+        if self.region_aware:
+            self.surface_facts.match_state(state, "surface_facts.")
+
+    @property
     def deferred(self) -> bool:
         """Whether marched samples carry appearance features, shaded once a ray (``shade_fn``)."""
         return bool(getattr(self.config, "deferred_colour", False))
 
     def shade_fn(self) -> ShadeFn | None:
-        """``MarchableField.shade_fn``: the colour of a ray's mean appearance features."""
-        return self.colour_from_grid if self.deferred else None
+        """``MarchableField.shade_fn``: the colour of a ray's mean appearance features (and
+        region-aware, of its mean direction inputs beside them)."""
+        if not self.deferred:
+            return None
+        if self.region_aware:
+            width = self.appearance_grid.out_dims
+            return lambda mean, directions: self.colour_from_grid(mean[:, :width], mean[:, width:])
+        return lambda mean, directions: self.colour_from_grid(mean, self.direction_inputs(directions))
 
-    def sample_appearance(self, grid_features: Tensor, directions: Tensor) -> Tensor:
-        """What a marched sample carries: its colour, or with deferred colour its features."""
-        return grid_features if self.deferred else self.colour_from_grid(grid_features, directions)
+    def sample_appearance(self, grid_features: Tensor, directions: Tensor, x: Tensor) -> Tensor:
+        """What a marched sample at ``x`` carries: its colour, or with deferred colour its
+        features (region-aware, with its direction inputs beside them)."""
+        if not self.deferred:
+            return self.colour_from_grid(grid_features, self.direction_inputs(directions, x))
+        if self.region_aware:
+            return torch.cat([grid_features.float(), self.direction_inputs(directions, x)], dim=1)
+        return grid_features
 
     def ray_features(self, directions: Tensor) -> RayColourFn:
         """``MarchableField.ray_features``: the appearance grid's features of packed samples
         (on the CPU, with the compiled pass that composites them: ``compiled_ray_features``)."""
+        if self.region_aware:
+            return lambda x, ray: self.sample_appearance(self.appearance_grid(self.normalise(x)).float(),
+                                                         directions.index_select(0, ray), x)
         compiled = compiled_ray_features(self) if directions.device.type == "cpu" else None
         if compiled is not None:
             return compiled
@@ -67,13 +125,16 @@ class GridAppearance:
 
     def colour_with(self, x: Tensor, directions: Tensor, extra: Tensor | None = None) -> Tensor:
         """``colour``, with the ``extra_inputs`` features given (``[P, extra_inputs]``)."""
-        return self.colour_from_grid(self.appearance_grid(self.normalise(x)), directions, extra)
+        return self.colour_from_grid(self.appearance_grid(self.normalise(x)), self.direction_inputs(directions, x),
+                                     extra)
 
-    def colour_from_grid(self, grid_features: Tensor, directions: Tensor, extra: Tensor | None = None) -> Tensor:
-        """``colour_with`` from the appearance grid's features at the points, already read."""
+    def colour_from_grid(self, grid_features: Tensor, direction_inputs: Tensor | None,
+                         extra: Tensor | None = None) -> Tensor:
+        """``colour_with`` from the appearance grid's features at the points, already read, and
+        their ``direction_inputs``."""
         features = [self.appearance_basis(grid_features)]
-        if self.config.view_dependent:
-            features.append(self.direction_encoding(directions))
+        if direction_inputs is not None:
+            features.append(direction_inputs.to(features[0].dtype))
         if extra is not None:
             features.append(extra.to(features[0].dtype))
         return torch.sigmoid(self.colour_mlp(torch.cat(features, dim=-1) if len(features) > 1 else features[0]).float())
@@ -89,7 +150,7 @@ class GridAppearance:
         first = self.colour_mlp[0]
         appearance = self.config.appearance_dims
         if not self.config.view_dependent or first.in_features != appearance + self.direction_encoding.out_dims:
-            return super().ray_colour(directions, dtype)  # no direction, or features of the field's own besides
+            return super().ray_colour(directions, dtype)  # no direction, region-aware, or features of the field's own
         compiled = compiled_ray_colour(self, directions, dtype)
         if compiled is not None:  # the CPU's compiled pass (field_components/compiled_colour.py)
             return compiled

@@ -53,6 +53,12 @@ class GridFieldConfig:
     # Deferred colour (GridAppearance): the appearance features composited along each ray, the
     # colour network run once a ray rather than once a sample.
     deferred_colour: bool = False
+    # Colour shaped by the scene's materials (GridAppearance.direction_inputs): with a dataset's
+    # prior, samples in diffuse regions get no direction input, in glossy and metal ones the view
+    # reflected about the true surface's normal (encoded with reflection_frequencies), elsewhere
+    # the view as before. Without a prior (another tool's dataset) the same as without it.
+    region_appearance: bool = False
+    reflection_frequencies: int = 4
     # σ = density_scale · softplus(feature + density_shift): TensoRF's parametrisation.
     density_shift: float = -10.0
     density_scale: float = 25.0
@@ -137,10 +143,11 @@ class GridField(VertexOccupancy, GridAppearance, MarchableField):
             density_features, appearance_features = features.split(
                 [self.density_grid.out_dims, self.appearance_grid.out_dims], dim=1)
             return (self.density_from_features(density_features.sum(dim=-1)),
-                    self.sample_appearance(appearance_features, directions))
+                    self.sample_appearance(appearance_features, directions, x))
         density = self.density_from_features(self.density_grid(normalised).sum(dim=-1))
         shown = normalised.index_select(0, coloured)
-        return density, self.sample_appearance(self.appearance_grid(shown), directions.index_select(0, coloured))
+        return density, self.sample_appearance(self.appearance_grid(shown), directions.index_select(0, coloured),
+                                               x.index_select(0, coloured))
 
     def sample_cost(self) -> dict[str, SampleCost]:
         # Each channel of a component reads 4 plane and 2 line values, and interpolating
@@ -234,6 +241,7 @@ class GridField(VertexOccupancy, GridAppearance, MarchableField):
         """Take the box and vertices a checkpoint was saved with (also cubic grids from before
         each axis had its own count), and the schedule's resolution they stand for."""
         changed = self._take_box(state)
+        self.match_surface_facts(state)
         (nx, ny), nz = state["density_grid.planes.0"].shape[-2:], state["density_grid.planes.1"].shape[-1]
         if (nx, ny, nz) != self.vertices:
             self.resize((nx, ny, nz))

@@ -85,6 +85,8 @@ class MarchedModel(Model):
         self.box_fitted = False  # the field narrowed to a box inside the one it was built over
         self._note: str | None = None
         self._fit_sampling_to_field()
+        if prior is not None and getattr(field, "region_aware", False):  # what Blender says the surface is
+            field.surface_facts.set(*prior.surface_grid())
 
     @classmethod
     def of(cls, field_class: type[MarchableField]) -> type["MarchedModel"]:
