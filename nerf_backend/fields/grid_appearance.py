@@ -33,8 +33,8 @@ class GridAppearance:
 
     With ``region_appearance`` in the config, the network's direction inputs follow what the
     scene's surface is made of (``direction_inputs``, from ``surface_facts``: the dataset's
-    prior and true surface, set by the model); with deferred colour each sample carries its
-    direction inputs beside its features, composited alike."""
+    prior and true surface, set by the model); with deferred colour each sample carries what
+    they are made of beside its features (``direction_parts``), composited alike."""
 
     def build_appearance(self, config, vertices: Vertices, extra_inputs: int = 0) -> None:
         """The appearance grid and MLP; ``extra_inputs``: features of the field's own that
@@ -68,20 +68,37 @@ class GridAppearance:
         that encoding where the region is neither diffuse nor reflective, beside the encoding of
         the view reflected about the true surface's normal where it is glossy or metal and a
         normal is known (Ref-NeRF's reflected direction, here from Blender's mesh), and nothing
-        of the view where it is diffuse."""
+        of the view where it is diffuse (``direction_parts``, then ``encode_directions``)."""
         if not self.config.view_dependent:
             return None
-        view = self.direction_encoding(directions)
         if not self.region_aware:
-            return view
+            return self.direction_encoding(directions)
         if x is None:
             raise ValueError("region-aware colour needs the samples' points")
+        return self.encode_directions(directions, self.direction_parts(directions, x))
+
+    def direction_parts(self, directions: Tensor, x: Tensor) -> Tensor:
+        """``[P, 5]`` per sample: whether the view itself is an input (1, or 0 on diffuse and
+        reflective surfaces), the reflected view times whether it is an input (3), and whether
+        it is (1). Deferred colour composites these five along a ray, not their encodings (42
+        values): a ray's reflected views near one surface differ little, so the encoding of
+        their mean stands for the mean of their encodings."""
         region, normal = self.surface_facts.lookup(x)
         reflective = ((region == _GLOSSY) | (region == _METAL)) & (normal.abs().sum(dim=1) > 0)
         plain = ~reflective & (region != _DIFFUSE)
         reflected = directions - 2.0 * (directions * normal).sum(dim=1, keepdim=True) * normal
-        return torch.cat([view * plain[:, None].to(view.dtype),
-                          self.reflection_encoding(reflected) * reflective[:, None].to(view.dtype)], dim=1)
+        weight = reflective[:, None].to(directions.dtype)
+        return torch.cat([plain[:, None].to(directions.dtype), reflected * weight, weight], dim=1)
+
+    def encode_directions(self, directions: Tensor, parts: Tensor) -> Tensor:
+        """The direction inputs from ``direction_parts`` (or their weighted mean along rays):
+        the view's encoding times its share, and the encoding of the (mean) reflected view's
+        direction times its share."""
+        reflected = parts[:, 1:4]
+        length = reflected.norm(dim=1, keepdim=True)
+        unit = torch.where(length > 1e-6, reflected / length.clamp(min=1e-6), torch.zeros_like(reflected))
+        return torch.cat([self.direction_encoding(directions) * parts[:, :1],
+                          self.reflection_encoding(unit) * parts[:, 4:5]], dim=1)
 
     def match_surface_facts(self, state: dict[str, Tensor]) -> None:
         """Take the surface facts' shapes from a checkpoint (``match_state``)."""
@@ -100,7 +117,8 @@ class GridAppearance:
             return None
         if self.region_aware:
             width = self.appearance_grid.out_dims
-            return lambda mean, directions: self.colour_from_grid(mean[:, :width], mean[:, width:])
+            return lambda mean, directions: self.colour_from_grid(mean[:, :width],
+                                                                  self.encode_directions(directions, mean[:, width:]))
         return lambda mean, directions: self.colour_from_grid(mean, self.direction_inputs(directions))
 
     def sample_appearance(self, grid_features: Tensor, directions: Tensor, x: Tensor) -> Tensor:
@@ -109,7 +127,7 @@ class GridAppearance:
         if not self.deferred:
             return self.colour_from_grid(grid_features, self.direction_inputs(directions, x))
         if self.region_aware:
-            return torch.cat([grid_features.float(), self.direction_inputs(directions, x)], dim=1)
+            return torch.cat([grid_features.float(), self.direction_parts(directions, x)], dim=1)
         return grid_features
 
     def ray_features(self, directions: Tensor) -> RayColourFn:
