@@ -1,6 +1,6 @@
 """Colour shaped by the scene's materials (issue 60; ``grid.region_appearance``): the colour
 network's direction inputs by region (none on diffuse surfaces, the view reflected about the
-true surface's normal on glossy and metal ones, the view elsewhere), the surface facts read from
+true surface's normal on metal ones, the view elsewhere), the surface facts read from
 a prior and its mesh, kept through a checkpoint, and deferred colour shading the same inputs."""
 
 from __future__ import annotations
@@ -58,17 +58,18 @@ def test_diffuse_samples_are_the_same_colour_from_every_side_and_the_others_are_
 
 def test_metal_samples_see_the_view_reflected_about_the_true_normal():
     """Direction inputs on metal: nothing of the view itself, the reflection encoding of
-    d − 2 (d·n) n with n the surface's +z; on glossy the same; elsewhere the view alone."""
+    d − 2 (d·n) n with n the surface's +z; on glossy (a dielectric) the view alone, as before."""
     field = _field()
     _facts(field, {"negative": METAL, "positive": GLOSSY})
     d = _directions(5, 2)
-    for x in (-0.5, 0.5):
-        points = torch.tensor([[x, 0.0, 0.0]]).expand(5, 3)
-        inputs = field.direction_inputs(d, points)
-        view_width = field.direction_encoding.out_dims
-        reflected = d * torch.tensor([1.0, 1.0, -1.0])
-        assert torch.equal(inputs[:, :view_width], torch.zeros(5, view_width))
-        torch.testing.assert_close(inputs[:, view_width:], field.reflection_encoding(reflected), atol=1e-5, rtol=0)
+    view_width = field.direction_encoding.out_dims
+    metal = field.direction_inputs(d, torch.tensor([[-0.5, 0.0, 0.0]]).expand(5, 3))
+    reflected = d * torch.tensor([1.0, 1.0, -1.0])
+    assert torch.equal(metal[:, :view_width], torch.zeros(5, view_width))
+    torch.testing.assert_close(metal[:, view_width:], field.reflection_encoding(reflected), atol=1e-5, rtol=0)
+    glossy = field.direction_inputs(d, torch.tensor([[0.5, 0.0, 0.0]]).expand(5, 3))
+    torch.testing.assert_close(glossy[:, :view_width], field.direction_encoding(d))
+    assert not glossy[:, view_width:].any()
     # No facts (a dataset without a prior): the view's encoding, the reflection's inputs zero.
     plain = _field()
     inputs = plain.direction_inputs(d, torch.zeros(5, 3))
@@ -126,12 +127,12 @@ def test_a_model_takes_its_facts_from_the_prior_and_its_mesh_and_keeps_them_in_i
     settings = with_overrides(PRESETS["fast"], ["grid.region_appearance=true"])
     model = GridModel(settings, BOX, prior)
     on_surface = _directions(200, 4) * radius
-    region, normal = model.field.surface_facts.lookup(on_surface)
+    region, normal = model.field.surface_facts.region_at(on_surface), model.field.surface_facts.normal_at(on_surface)
     assert (region == METAL).all()
     cell = 2.0 / 128
     angle = torch.rad2deg(torch.arccos((normal * on_surface / radius).sum(dim=1).clamp(-1, 1)))
     assert float(angle.max()) < math.degrees(cell * math.sqrt(3) / radius), float(angle.max())
-    assert (model.field.surface_facts.lookup(torch.zeros(1, 3))[0] == 0).all()  # the ball's empty inside
+    assert (model.field.surface_facts.region_at(torch.zeros(1, 3)) == 0).all()  # the ball's empty inside
 
     torch.save(model.state_dict(), tmp_path / "state.pt")
     again = GridModel(settings, BOX, None)

@@ -10,7 +10,7 @@ cells a side it is about 8 MB, beside the prior's 256.
 Example:
     >>> import torch
     >>> facts = SurfaceFacts()
-    >>> facts.known, facts.lookup(torch.zeros(2, 3))[0].tolist()  # none yet: every sample region 0
+    >>> facts.known, facts.region_at(torch.zeros(2, 3)).tolist()  # none yet: every sample region 0
     (False, [0, 0])
 """
 
@@ -52,24 +52,28 @@ class SurfaceFacts(nn.Module):
             if saved is not None and saved.shape != getattr(self, name).shape:
                 setattr(self, name, torch.zeros_like(saved, device=self.box.device))
 
-    def lookup(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        """Each point's region ``[P]`` (int64; 0 outside the grid) and normal ``[P, 3]``
-        (float32, read trilinearly; zero where no surface is near)."""
+    def region_at(self, x: Tensor) -> Tensor:
+        """Each point's region ``[P]`` (int64; 0 outside the grid)."""
         low, high = self.box[0], self.box[1]
         shape = torch.tensor(self.regions.shape, device=x.device)
         cells = ((x - low) / (high - low) * shape).floor().long()
         inside = ((cells >= 0) & (cells < shape)).all(dim=1)
         cells = torch.minimum(cells.clamp(min=0), shape - 1)
-        region = self.regions[cells[:, 0], cells[:, 1], cells[:, 2]].long() * inside
+        return self.regions[cells[:, 0], cells[:, 1], cells[:, 2]].long() * inside
+
+    def normal_at(self, x: Tensor) -> Tensor:
+        """Each point's surface normal ``[P, 3]`` (float32, read trilinearly; zero where no
+        surface is near)."""
         normals = self._normals_float()
-        if normals is None:
-            return region, x.new_zeros(x.shape)
+        if normals is None or x.shape[0] == 0:
+            return x.new_zeros(x.shape, dtype=torch.float32)
+        low, high = self.box[0], self.box[1]
         grid = ((x - low) / (high - low) * 2.0 - 1.0).view(1, -1, 1, 1, 3)  # grid_sample's (x, y, z)
         normal = F.grid_sample(normals, grid.float(), mode="bilinear", padding_mode="zeros",
                                align_corners=False).view(3, -1).t()
         length = normal.norm(dim=1, keepdim=True)
         # Where the cells around hold no surface the interpolated vector fades to zero: none there.
-        return region, torch.where(length > 0.25, normal / length.clamp(min=1e-6), torch.zeros_like(normal))
+        return torch.where(length > 0.25, normal / length.clamp(min=1e-6), torch.zeros_like(normal))
 
     def _normals_float(self) -> Tensor | None:
         """The normals as float32 ``[1, 3, nz, ny, nx]`` for ``grid_sample`` (None where there are

@@ -54,9 +54,9 @@ class GridFieldConfig:
     # colour network run once a ray rather than once a sample.
     deferred_colour: bool = False
     # Colour shaped by the scene's materials (GridAppearance.direction_inputs): with a dataset's
-    # prior, samples in diffuse regions get no direction input, in glossy and metal ones the view
-    # reflected about the true surface's normal (encoded with reflection_frequencies), elsewhere
-    # the view as before. Without a prior (another tool's dataset) the same as without it.
+    # prior, samples in diffuse regions get no direction input, in metal ones the view reflected
+    # about the true surface's normal (encoded with reflection_frequencies), elsewhere the view
+    # as before. Without a prior (another tool's dataset) the same as without it.
     region_appearance: bool = False
     reflection_frequencies: int = 4
     # σ = density_scale · softplus(feature + density_shift): TensoRF's parametrisation.
