@@ -73,8 +73,9 @@ def test_each_preset_is_planned_whole_with_a_reason_for_every_decision(preset, k
 def _check_shaping(preset, kind, facts, plan):
     """What the rules that shape a preset to the scene decided, and nothing where none applies."""
     config, decisions = plan.config, plan.decisions
-    shaped = {"auto": {"model", "rays", "view_dependence", "colour", "grid_resolution", "finest_cell", "initial_resolution",
-                       "growth", "last_growth", "background", "occupancy_prior", "box_fit", "samples"},
+    shaped = {"auto": {"model", "rays", "view_dependence", "colour", "region_appearance", "grid_resolution", "finest_cell",
+                       "initial_resolution", "growth", "last_growth", "background", "occupancy_prior", "box_fit",
+                       "samples"} | ({"reflection_frequencies"} if config.grid.region_appearance else set()),
               "surface": {"surface_softness", "surface_opacity"},
               "plenoxels": {"grid_resolution", "finest_cell", "initial_resolution", "box_fit"}}.get(preset, set())
     every_start = {"device", "max_seconds", "stop_at_iterations", "schedule_seconds", "train_views", "ray_bounds",
@@ -87,6 +88,9 @@ def _check_shaping(preset, kind, facts, plan):
         assert "view-dependent materials" in decisions["view_dependence"]["reason"] if kind == "demo" else (
             "does not say" in decisions["view_dependence"]["reason"])
         assert config.grid.deferred_colour is True and "once a ray" in decisions["colour"]["reason"]
+        # The demo's gold sphere is metal, but too little of it; a foreign dataset says nothing.
+        assert config.grid.region_appearance is False
+        assert ("are metal, under" if kind == "demo" else "does not say") in decisions["region_appearance"]["reason"]
         assert MIN_RESOLUTION <= config.grid.resolution <= MAX_RESOLUTION
         assert config.grid.finest_cell == pytest.approx(pixel_footprint(facts.train_split, plan.ray_bounds.box))
         assert config.grid.last_growth_min_steps == (LAST_GROWTH_MIN_STEPS if config.grid.upsample_iterations else 0)
