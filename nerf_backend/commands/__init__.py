@@ -5,7 +5,7 @@ The flags the add-on passes are named in ``nerf_contract.commands``.
 
 A process runs one command, so only that command's module is imported (``command_module``):
 importing all of them, with bench's marching cubes and geometry scores, cost every ``train``
-about half a second of its start (``docs/testing.md``)."""
+about 0.3 s of its start (``docs/testing.md``)."""
 
 from __future__ import annotations
 

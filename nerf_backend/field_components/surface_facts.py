@@ -10,8 +10,8 @@ cells a side it is about 8 MB, beside the prior's 256.
 Example:
     >>> import torch
     >>> facts = SurfaceFacts()
-    >>> facts.known, facts.region_at(torch.zeros(2, 3)).tolist()  # none yet: every sample region 0
-    (False, [0, 0])
+    >>> facts.region_at(torch.zeros(2, 3)).tolist(), facts.normal_at(torch.zeros(1, 3)).tolist()  # none yet
+    ([0, 0], [[0.0, 0.0, 0.0]])
 """
 
 from __future__ import annotations
@@ -31,11 +31,6 @@ class SurfaceFacts(nn.Module):
         self.register_buffer("regions", torch.zeros((1, 1, 1), dtype=torch.uint8))
         self.register_buffer("normals", torch.zeros((3, 1, 1, 1), dtype=torch.float16))
         self.register_buffer("box", torch.tensor([[-1.0] * 3, [1.0] * 3]))
-
-    @property
-    def known(self) -> bool:
-        """Whether any region is set (a dataset with a prior gave them)."""
-        return bool(self.regions.any())
 
     def set(self, regions: Tensor, normals: Tensor, box_min: Tensor, box_max: Tensor) -> None:
         """Take ``regions`` uint8 ``[nx, ny, nz]`` and ``normals`` ``[nx, ny, nz, 3]`` over the
