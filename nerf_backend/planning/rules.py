@@ -330,6 +330,8 @@ def auto_region_appearance(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]
         chosen, reason = False, "the dataset does not say what its surfaces are made of (no regions in its prior): colour as before"
     elif not (isinstance(geometry, dict) and geometry.get("file")):
         chosen, reason = False, "no true surface in the dataset (scene_geometry.ply) to reflect the view about: colour as before"
+    elif reflective <= 0.0:
+        chosen, reason = False, f"no {' or '.join(REFLECTIVE_REGIONS)} surface in the prior: colour as before"
     elif reflective < MIN_REFLECTIVE_SHARE:
         chosen, reason = False, (
             f"{reflective:.0%} of the prior's surface cells are {' or '.join(REFLECTIVE_REGIONS)}, under "
