@@ -51,7 +51,7 @@ test-gui: $(STAMP)
 test-slow: $(STAMP)
 	$(PY) -m pytest -m slow
 
-# The benchmark suite (not part of `make test`: about 65 minutes of training and scoring on 2 CPU
+# The benchmark suite (not part of `make test`: about 90 minutes of training and scoring on 2 CPU
 # cores, after the renders): the trap scenes, the demo and ../shared/scenes/*.blend rendered at
 # 100x100 (100 train / 10 val / 50 test views, 64 samples; --allow-missing for RobotExpressive's
 # missing texture), then preview, fast and auto trained 120 s each on every scene. Interrupted,
