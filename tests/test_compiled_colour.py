@@ -47,7 +47,7 @@ def _field(**settings) -> GridField:
 
 def _reference(field: GridField, x: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
     features = field.appearance_grid._forward_rows(field.normalise(x))
-    return field.colour_from_grid(features, directions)
+    return field.colour_from_grid(features, field.direction_inputs(directions))
 
 
 def _bfloat16(t: torch.Tensor) -> torch.Tensor:

@@ -118,7 +118,8 @@ def test_the_grid_fields_training_read_matches_its_separate_reads():
     density, colour = field(x, directions)
     normalised = field.normalise(x)
     density_ref = field.density_from_features(field.density_grid._forward_rows(normalised).sum(-1))
-    colour_ref = field.colour_from_grid(field.appearance_grid._forward_rows(normalised), directions)
+    colour_ref = field.colour_from_grid(field.appearance_grid._forward_rows(normalised),
+                                        field.direction_inputs(directions))
     assert _close(density, density_ref, 1e-4) and _close(colour, colour_ref)
 
 

@@ -116,7 +116,8 @@ def test_the_training_march_is_the_shaded_mean_of_the_features_composited_by_han
         weights = dense.weights.detach()
         opacity = weights.sum(dim=1)
         mean = (weights[..., None] * features).sum(dim=1) / opacity.clamp_min(1e-30)[:, None]
-        expected = opacity[:, None] * field.colour_from_grid(mean, directions) + (1 - opacity)[:, None]
+        shaded = field.colour_from_grid(mean, field.direction_inputs(directions))
+        expected = opacity[:, None] * shaded + (1 - opacity)[:, None]
     assert 0.05 < float(opacity.mean()) < 0.95  # translucent rays and opaque ones
     assert torch.allclose(dense.rgb.detach(), expected, atol=1e-5)
     packed = _training_march(field, rays, packed=True)
