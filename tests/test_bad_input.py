@@ -173,6 +173,10 @@ CASES = [
      "'camera_angle_x' must be a number, got True"),
     ("camera_angle_x-above-pi", _edit_train(_set("camera_angle_x", 4.0)), "transforms_train.json",
      "'camera_angle_x' = 4.0 is not a field of view below π"),
+    # Found by test_load_split_mutated_json's fuzzing (session 58): tan(angle / 2) underflowed to zero.
+    ("camera_angle_x-subnormal", _edit_train(lambda d: (_delete("fl_x", "fl_y", "cx", "cy")(d),
+                                                        _set("camera_angle_x", 5e-324)(d))),
+     "transforms_train.json", "'camera_angle_x' = 5e-324 is too small a field of view"),
     ("fl_x-zero", _edit_train(_set("fl_x", 0)), "transforms_train.json",
      "'fl_x' must be a finite positive number, got 0"),
     ("w-mismatch", _edit_train(_set("w", 41)), "transforms_train.json", "'w' is 41 but the images are 40×40"),

@@ -277,6 +277,8 @@ def read_intrinsics(data: dict, path: Path, width: int, height: int) -> Intrinsi
             _finite_number(data, "fl_x", path), _finite_number(data, "fl_y", path),
             _finite_number(data, "cx", path, positive=False), _finite_number(data, "cy", path, positive=False),
         )
+    if math.tan(0.5 * angle) == 0.0:  # a subnormal angle: its tangent underflows to zero
+        raise DatasetError(f"{path}: 'camera_angle_x' = {angle} is too small a field of view")
     intrinsics = Intrinsics.from_camera_angle_x(width, height, angle)
     if not _in_range(intrinsics.fl_x):
         raise DatasetError(f"{path}: 'camera_angle_x' = {angle} is too small a field of view")
