@@ -17,9 +17,11 @@ from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.data.occupancy_prior import OccupancyPrior
 from nerf_backend.fields.grid_field import GridField, GridFieldConfig
 from nerf_backend.models.registry import GridModel
+from nerf_contract.dataset_layout import APPEARANCE_REGIONS
 
 BOX = SceneBounds((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
-DIFFUSE, GLOSSY, METAL, TRANSMISSIVE = 1, 2, 3, 5
+DIFFUSE, GLOSSY, METAL, TRANSMISSIVE = (APPEARANCE_REGIONS.index(name)
+                                       for name in ("diffuse", "glossy", "metal", "transmissive"))
 
 
 def _field(deferred: bool = False) -> GridField:

@@ -9,6 +9,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from nerf_contract.dataset_layout import APPEARANCE_REGIONS
+
 from ..core.field_functions import RayColourFn, ShadeFn
 from ..field_components.compiled_colour import compiled_ray_colour, compiled_ray_features
 from ..field_components.encodings import PositionalEncoding
@@ -16,8 +18,8 @@ from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
 from ..field_components.surface_facts import SurfaceFacts
 from .base import SampleCost, mlp_flops
 
-# The appearance regions (nerf_contract.dataset_layout.APPEARANCE_REGIONS) by index.
-_DIFFUSE, _METAL = 1, 3
+# The regions the colour treats apart, by their index in the prior's ``regions`` array.
+_DIFFUSE, _METAL = APPEARANCE_REGIONS.index("diffuse"), APPEARANCE_REGIONS.index("metal")
 
 
 class GridAppearance:
