@@ -5,6 +5,7 @@ keyed by their settings and the code that made them (``cached_fixture``); each t
 
 from __future__ import annotations
 
+import atexit
 import functools
 import hashlib
 import importlib.metadata
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import pytest
 from filelock import FileLock, Timeout
+from warm_python import WarmInterpreter
 
 # The tests run the backend in their own processes too (train(), evaluate_run()...), where
 # nerf_backend/__main__.py's sleeping OpenMP threads are not set: under pytest-xdist's two
@@ -60,10 +62,24 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 
+WARM = WarmInterpreter(REPO_ROOT)
+atexit.register(WARM.stop)
+
+
 def run_python(*args: str, timeout: float = 900, check: bool = True, **kwargs) -> subprocess.CompletedProcess:
-    """Run ``python ARGS`` with this interpreter from the repo root, capturing output."""
-    result = subprocess.run([sys.executable, *args], cwd=REPO_ROOT, capture_output=True, text=True,
-                            timeout=timeout, **kwargs)
+    """Run ``python ARGS`` with this interpreter from the repo root, capturing output: a backend
+    command forked from the warm interpreter (tests/warm_python.py: torch already imported), any
+    other cold."""
+    env = kwargs.get("env", os.environ)
+    warm = set(kwargs) <= {"env"} and not os.environ.get("NERF_TESTS_COLD") and WARM.can_run(args, env)
+    if os.environ.get("NERF_TESTS_PROCESS_LOG"):
+        with open(os.environ["NERF_TESTS_PROCESS_LOG"], "a") as log:
+            log.write(f"{'warm' if warm else 'cold'} {' '.join(args[:3])[:120]!r}\n")
+    if warm:
+        result = WARM.run(args, REPO_ROOT, dict(env), timeout)
+    else:
+        result = subprocess.run([sys.executable, *args], cwd=REPO_ROOT, capture_output=True, text=True,
+                                timeout=timeout, **kwargs)
     if check and result.returncode != 0:
         raise AssertionError(f"python {' '.join(args)} exited {result.returncode}\n"
                              f"stdout:\n{result.stdout[-3000:]}\nstderr:\n{result.stderr[-3000:]}")
