@@ -267,7 +267,8 @@ def _scene_files(survey: _Survey) -> tuple[Optional[FileWriter], Optional[FileWr
     started = time.perf_counter()
     region_of = {material["name"]: APPEARANCE_REGIONS.index(material["region"])
                  for material in survey.profile["materials"]}
-    scene_parts = collect_parts(survey.view_layer, survey.frame, region_of)
+    material_of = {material["name"]: index for index, material in enumerate(survey.profile["materials"])}
+    scene_parts = collect_parts(survey.view_layer, survey.frame, region_of, material_of)
     return _occupancy_prior(survey, scene_parts, started), _scene_geometry(survey, scene_parts)
 
 
@@ -300,11 +301,11 @@ def _scene_geometry(survey: _Survey, scene_parts: Any) -> Optional[FileWriter]:
     triangles = scene_parts.all_triangles()
     if len(triangles) == 0:
         return _no_scene_geometry(survey.profile, "no renderable object could be meshed")
-    vertices, faces = weld(triangles)
+    vertices, faces, materials = weld(triangles, scene_parts.all_materials())
     survey.profile["geometry"] = geometry_record(len(faces), len(vertices), scene_parts.filled_boxes,
                                                  scene_parts.margin_reasons)
     print(f"{GENERATOR_NAME}: scene geometry: {len(faces)} triangles", file=sys.stderr)
-    return lambda path: write_ply_atomic(path, vertices, faces)
+    return lambda path: write_ply_atomic(path, vertices, faces, materials)
 
 
 def _no_scene_geometry(profile: dict[str, Any], reason: str) -> None:

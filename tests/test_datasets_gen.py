@@ -21,7 +21,9 @@ from PIL import Image
 
 from datasets_gen.core import trajectories as tr
 from datasets_gen.core.intrinsics import camera_intrinsics
-from nerf_backend.core.ply import read_ply
+from nerf_backend.core.ply import read_face_materials, read_ply
+from nerf_backend.data.occupancy_prior import load_occupancy_prior
+from nerf_contract.dataset_layout import APPEARANCE_REGIONS
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPTS = Path(__file__).resolve().parent / "blender_scripts"
@@ -266,6 +268,19 @@ def test_scene_geometry_is_the_renderable_triangles_in_the_profile_bounds(demo_d
     assert (vertices >= low - 1e-5).all() and (vertices <= high + 1e-5).all()
     np.testing.assert_allclose(vertices.min(axis=0), low, atol=1e-5)  # the bounds are the triangles'
     np.testing.assert_allclose(vertices.max(axis=0), high, atol=1e-5)
+    # Each triangle's material, an index into the profile's materials: every material an object
+    # carries is some triangles', and a triangle's material is its region's in the prior's cells.
+    materials = read_face_materials(demo_dataset / record["file"])
+    names = [material["name"] for material in profile["materials"]]
+    assert materials is not None and len(materials) == len(faces) and materials.max() < len(names)
+    assert {names[i] for i in set(materials.tolist())} == {m["name"] for m in profile["materials"] if m["objects"]}
+    prior = load_occupancy_prior(demo_dataset, "surface")
+    centres = vertices[faces].mean(axis=1)
+    cells = np.clip(((centres - np.asarray(prior.box_min)) / prior.cell_size).astype(int), 0,
+                    np.asarray(prior.regions.shape) - 1)
+    in_cells = prior.regions.numpy()[cells[:, 0], cells[:, 1], cells[:, 2]]
+    of_material = np.array([APPEARANCE_REGIONS.index(m["region"]) for m in profile["materials"]])[materials]
+    assert (in_cells == of_material).mean() > 0.9  # cells two regions share hold the later one
 
 
 # --- the pure rig maths reproduces the protocol's Blender rig (Empty + child camera + Track-To) --

@@ -18,9 +18,10 @@ from PIL import Image
 
 from datasets_gen.io import surface_mesh
 from datasets_gen.io.surface_mesh import ply_bytes, weld, write_ply_atomic
+from datasets_gen.io.surface_mesh import read_ply as datasets_gen_read_ply
 from nerf_backend.bench.tables import markdown_table
 from nerf_backend.core.errors import NerfError
-from nerf_backend.core.ply import read_ply
+from nerf_backend.core.ply import read_face_materials, read_ply
 from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.evaluation.geometry_eval import TAU_FRACTION, compare_surfaces
 from nerf_backend.evaluation.mesh import extract_mesh
@@ -47,16 +48,24 @@ def _signed_volume(triangles: np.ndarray) -> float:
 
 def test_the_truths_ply_round_trips(tmp_path):
     triangles = uv_sphere(0.7, 24, 12)
-    vertices, faces = weld(triangles)
+    materials = np.arange(len(triangles)) % 5  # each face's material goes with it through the sort
+    vertices, faces, welded_materials = weld(triangles, materials)
     assert len(vertices) < len(triangles)  # shared corners are one vertex
-    write_ply_atomic(str(tmp_path / "scene_geometry.ply"), vertices, faces)
+    write_ply_atomic(str(tmp_path / "scene_geometry.ply"), vertices, faces, welded_materials)
     read_vertices, read_faces = read_ply(tmp_path / "scene_geometry.ply")
     assert read_faces.tolist() == faces.tolist()
+    assert read_face_materials(tmp_path / "scene_geometry.ply").tolist() == welded_materials.tolist()
+    by_corners = {tuple(sorted(map(tuple, t.astype(np.float32).tolist()))): m for t, m in zip(triangles, materials)}
+    assert all(by_corners[tuple(sorted(map(tuple, read_vertices[f].astype(np.float32).tolist())))] == m
+               for f, m in zip(read_faces, welded_materials))
+    assert datasets_gen_read_ply(str(tmp_path / "scene_geometry.ply"))[1].tolist() == faces.tolist()
     # The same triangles, wound the same way (a canonical order: listed backwards, the same file).
     assert _corner_sets(read_vertices[read_faces]) == _corner_sets(triangles.astype(np.float32).astype(float))
     volume = _signed_volume(triangles)
     assert volume > 0 and _signed_volume(read_vertices[read_faces]) == pytest.approx(volume, rel=1e-5)
-    assert ply_bytes(*weld(triangles[::-1])) == (tmp_path / "scene_geometry.ply").read_bytes()
+    assert ply_bytes(*weld(triangles[::-1], materials[::-1])) == (tmp_path / "scene_geometry.ply").read_bytes()
+    write_ply_atomic(str(tmp_path / "without.ply"), vertices, faces)  # a file from before the materials
+    assert read_face_materials(tmp_path / "without.ply") is None
     assert not list(tmp_path.glob(".*tmp"))
 
 
@@ -100,7 +109,7 @@ def ball_mesh():
 def test_a_ball_against_a_true_sphere(ball_mesh, tmp_path, true_radius, f_score):
     """Same radius: every point within τ both ways, normals parallel. Three τ larger: none
     within τ, and the Chamfer distance is the radii's difference."""
-    write_ply_atomic(str(tmp_path / "truth.ply"), *weld(uv_sphere(true_radius)))
+    write_ply_atomic(str(tmp_path / "truth.ply"), *weld(uv_sphere(true_radius))[:2])
     scores, (points, true_points) = compare_surfaces(*ball_mesh, *read_ply(tmp_path / "truth.ply"), tau=TAU,
                                                      samples=50_000)
     assert len(points) == len(true_points) == 50_000

@@ -73,9 +73,9 @@ def test_each_preset_is_planned_whole_with_a_reason_for_every_decision(preset, k
 def _check_shaping(preset, kind, facts, plan):
     """What the rules that shape a preset to the scene decided, and nothing where none applies."""
     config, decisions = plan.config, plan.decisions
-    shaped = {"auto": {"model", "rays", "view_dependence", "colour", "region_appearance", "grid_resolution", "finest_cell",
-                       "initial_resolution", "growth", "last_growth", "background", "occupancy_prior", "box_fit",
-                       "samples"} | ({"reflection_frequencies"} if config.grid.region_appearance else set()),
+    shaped = {"auto": {"model", "rays", "view_dependence", "colour", "region_appearance", "refraction", "grid_resolution",
+                       "finest_cell", "initial_resolution", "growth", "last_growth", "background", "occupancy_prior",
+                       "box_fit", "samples"} | ({"reflection_frequencies"} if config.grid.region_appearance else set()),
               "surface": {"surface_softness", "surface_opacity"},
               "plenoxels": {"grid_resolution", "finest_cell", "initial_resolution", "box_fit"}}.get(preset, set())
     every_start = {"device", "max_seconds", "stop_at_iterations", "schedule_seconds", "train_views", "ray_bounds",

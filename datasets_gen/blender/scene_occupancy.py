@@ -25,6 +25,7 @@ from nerf_contract.dataset_layout import APPEARANCE_REGIONS, PRIOR_NAME
 
 from ..core.frame_fit import Similarity
 from ..core.materials import NO_MATERIAL
+from ..io.surface_mesh import NO_MATERIAL_INDEX
 from ..core.voxelise import BASE_MARGIN_CELLS, DEFAULT_RESOLUTION, RULE, Occupancy, Part, margin_in_cells, voxelise
 from .scene_bounds import MESHABLE_TYPES, SURFACE_OBJECT_TYPES, _camera_invisible_objects, _instances, slot_materials
 
@@ -51,6 +52,9 @@ class SceneParts:
     APPEARANCE_REGIONS), and what was filled as boxes, with why."""
 
     triangles: dict[tuple[float, int], list[np.ndarray]] = field(default_factory=dict)
+    # Beside each array of ``triangles``, its triangles' materials (indices into the profile's
+    # materials; NO_MATERIAL_INDEX where collect_parts was not told).
+    materials: dict[tuple[float, int], list[np.ndarray]] = field(default_factory=dict)
     boxes: dict[tuple[float, int], list[np.ndarray]] = field(default_factory=dict)
     margin_reasons: dict[str, tuple[float, str]] = field(default_factory=dict)  # object -> (margin, why)
     filled_boxes: dict[str, str] = field(default_factory=dict)  # object -> why
@@ -58,6 +62,11 @@ class SceneParts:
     def all_triangles(self) -> np.ndarray:
         """[T, 3, 3] every meshed triangle, whatever its margin (the scene's true surface)."""
         return np.concatenate([np.zeros((0, 3, 3))] + [t for group in self.triangles.values() for t in group])
+
+    def all_materials(self) -> np.ndarray:
+        """[T] the material of each of ``all_triangles``, in the same order."""
+        return np.concatenate([np.zeros(0, np.int64)] + [self.materials[key][i] for key, group in self.triangles.items()
+                                                         for i in range(len(group))])
 
     def parts(self) -> list[Part]:
         empty = np.zeros((0, 3, 3))
@@ -75,11 +84,15 @@ def build_occupancy_prior(scene_parts: SceneParts,
 
 
 def collect_parts(view_layer: "bpy.types.ViewLayer", frame: Similarity,
-                  region_of: Optional[Mapping[str, int]] = None) -> SceneParts:
+                  region_of: Optional[Mapping[str, int]] = None,
+                  material_of: Optional[Mapping[str, int]] = None) -> SceneParts:
     """Every renderable instance's triangles (or box) in the NeRF frame, grouped by margin and
     by the appearance region of their material slot's material (``region_of``: material name,
-    or NO_MATERIAL, to its index into APPEARANCE_REGIONS; 0 for any it does not name)."""
+    or NO_MATERIAL, to its index into APPEARANCE_REGIONS; 0 for any it does not name), each
+    triangle with its material (``material_of``: the same names to their index in the profile's
+    materials; NO_MATERIAL_INDEX for any it does not name)."""
     region_of = region_of or {}
+    material_of = material_of or {}
     view_layer.update()
     scene_parts = SceneParts()
     for obj, owner, matrix, renders in _instances(view_layer, _camera_invisible_objects(view_layer)):
@@ -90,14 +103,19 @@ def collect_parts(view_layer: "bpy.types.ViewLayer", frame: Similarity,
         nerf_margin = (margin.object_units * _largest_scale(matrix) + margin.world_units) * frame.scale
         if margin.reasons and nerf_margin >= scene_parts.margin_reasons.get(name, (0.0, ""))[0]:
             scene_parts.margin_reasons[name] = (nerf_margin, "; ".join(margin.reasons))  # its largest instance
-        regions = [region_of.get(material, 0) for material in slot_materials(obj)]
+        names = slot_materials(obj)
+        regions = [region_of.get(material, 0) for material in names]
         if margin.fill_box is None and obj.type in MESHABLE_TYPES:
             triangles, slots = _nerf_triangles(obj, matrix, frame)
             # A slot index past the object's slots renders with none (Blender's own rule).
-            by_triangle = np.array(regions + [region_of.get(NO_MATERIAL, 0)], np.int64)[
-                np.minimum(slots, len(regions))]
+            slot = np.minimum(slots, len(regions))
+            by_triangle = np.array(regions + [region_of.get(NO_MATERIAL, 0)], np.int64)[slot]
+            material = np.array([material_of.get(name, NO_MATERIAL_INDEX) for name in names]
+                                + [material_of.get(NO_MATERIAL, NO_MATERIAL_INDEX)], np.int64)[slot]
             for region in np.unique(by_triangle).tolist():
-                scene_parts.triangles.setdefault((nerf_margin, region), []).append(triangles[by_triangle == region])
+                chosen = by_triangle == region
+                scene_parts.triangles.setdefault((nerf_margin, region), []).append(triangles[chosen])
+                scene_parts.materials.setdefault((nerf_margin, region), []).append(material[chosen])
             continue
         low, high = _nerf_box(obj, matrix, frame)
         if margin.fill_box is not None:

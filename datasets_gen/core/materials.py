@@ -64,6 +64,7 @@ NO_MATERIAL = "(no material)"
 #: The Principled BSDF's inputs that shape a surface's appearance, as the scene profile's material
 #: facts name them: (fact, socket names across versions).  Blender 3.x has no thin film.
 APPEARANCE_INPUTS = (
+    ("base_colour", ("Base Color",)),
     ("roughness", ("Roughness",)),
     ("metallic", ("Metallic",)),
     ("specular", ("Specular IOR Level", "Specular")),

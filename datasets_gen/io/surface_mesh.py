@@ -22,38 +22,51 @@ from nerf_contract.dataset_layout import GEOMETRY_NAME
 from .output_dir import write_file_atomic
 
 FRAME = "NeRF frame: p_nerf = scale * p_blender + translation (world_to_nerf)"
+# Each face's material: an element of its own after the faces (``face_material``, one ushort a
+# face: the material's index in the profile's ``materials``), so that a reader of vertices and
+# faces alone skips it. NO_MATERIAL_INDEX: a face whose material the profile does not list.
+MATERIAL_ELEMENT = "face_material"
+NO_MATERIAL_INDEX = 65535
 
 
-def weld(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices [V, 3] float32, faces [T, 3] int32) of triangles [T, 3, 3]: corners that are
-    the same point (as float32) become one vertex, so the file is a connected mesh.
+def weld(triangles: np.ndarray, materials: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(vertices [V, 3] float32, faces [T, 3] int32, materials [T] uint16 or None) of triangles
+    [T, 3, 3] and their ``materials``: corners that are the same point (as float32) become one
+    vertex, so the file is a connected mesh.
 
     The order is canonical (vertices sorted; each face turned to start at its lowest vertex, its
     winding kept; faces sorted): Blender lists an n-gon's triangles in an order that varies from
     run to run, and the same scene must give the same file (shards, --resume).
 
     >>> square = np.array([[[0, 0, 0], [1, 0, 0], [1, 1, 0]], [[1, 1, 0], [0, 1, 0], [0, 0, 0]]], float)
-    >>> vertices, faces = weld(square)
-    >>> vertices.tolist(), faces.tolist()
-    ([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0]], [[0, 2, 3], [0, 3, 1]])
+    >>> vertices, faces, materials = weld(square, np.array([7, 3]))
+    >>> vertices.tolist(), faces.tolist(), materials.tolist()
+    ([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0]], [[0, 2, 3], [0, 3, 1]], [7, 3])
     """
     corners = np.ascontiguousarray(triangles, dtype=np.float32).reshape(-1, 3)
     vertices, index = np.unique(corners, axis=0, return_inverse=True)
     faces = index.reshape(-1, 3)
     turn = (faces.argmin(axis=1)[:, None] + np.arange(3)) % 3
     faces = np.take_along_axis(faces, turn, axis=1)
-    return vertices, faces[np.lexsort(faces.T[::-1])].astype(np.int32)
+    order = np.lexsort(faces.T[::-1])
+    return (vertices, faces[order].astype(np.int32),
+            None if materials is None else np.asarray(materials)[order].astype(np.uint16))
 
 
-def ply_bytes(vertices: np.ndarray, faces: np.ndarray) -> bytes:
-    """A binary little-endian PLY of float xyz vertices and triangle faces."""
+def ply_bytes(vertices: np.ndarray, faces: np.ndarray, materials: np.ndarray | None = None) -> bytes:
+    """A binary little-endian PLY of float xyz vertices and triangle faces, and each face's
+    material (MATERIAL_ELEMENT) where given."""
     face = np.empty(len(faces), dtype=[("count", "u1"), ("indices", "<i4", (3,))])
     face["count"] = 3
     face["indices"] = faces
     header = (f"ply\nformat binary_little_endian 1.0\ncomment the scene's renderable triangles, {FRAME}\n"
               f"element vertex {len(vertices)}\nproperty float x\nproperty float y\nproperty float z\n"
-              f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
-    return header.encode("ascii") + np.ascontiguousarray(vertices, dtype="<f4").tobytes() + face.tobytes()
+              f"element face {len(faces)}\nproperty list uchar int vertex_indices\n")
+    body = np.ascontiguousarray(vertices, dtype="<f4").tobytes() + face.tobytes()
+    if materials is not None:
+        header += f"element {MATERIAL_ELEMENT} {len(faces)}\nproperty ushort material\n"
+        body += np.ascontiguousarray(materials, dtype="<u2").tobytes()
+    return (header + "end_header\n").encode("ascii") + body
 
 
 def read_ply(path: str) -> tuple[np.ndarray, np.ndarray]:
@@ -63,21 +76,22 @@ def read_ply(path: str) -> tuple[np.ndarray, np.ndarray]:
     end = data.find(b"end_header\n")
     header = data[:end].decode("ascii", "replace").splitlines() if end > 0 else []
     counts = {line.split()[1]: int(line.split()[2]) for line in header if line.startswith("element ")}
-    if not header or header[:2] != ["ply", "format binary_little_endian 1.0"] or set(counts) != {"vertex", "face"}:
+    if (not header or header[:2] != ["ply", "format binary_little_endian 1.0"]
+            or set(counts) - {MATERIAL_ELEMENT} != {"vertex", "face"}):
         raise ValueError(f"{path}: not the scene geometry file datasets_gen writes")
     body = data[end + len(b"end_header\n"):]
     vertex_bytes = 12 * counts["vertex"]
     face = np.dtype([("count", "u1"), ("indices", "<i4", (3,))])
-    if len(body) != vertex_bytes + face.itemsize * counts["face"]:
-        raise ValueError(f"{path}: {len(body)} bytes of vertices and faces, expected "
-                         f"{vertex_bytes + face.itemsize * counts['face']} (a truncated file?)")
+    expected = vertex_bytes + face.itemsize * counts["face"] + 2 * counts.get(MATERIAL_ELEMENT, 0)
+    if len(body) != expected:
+        raise ValueError(f"{path}: {len(body)} bytes of vertices and faces, expected {expected} (a truncated file?)")
     vertices = np.frombuffer(body[:vertex_bytes], dtype="<f4").reshape(-1, 3)
-    faces = np.frombuffer(body[vertex_bytes:], dtype=face)["indices"]
+    faces = np.frombuffer(body[vertex_bytes:vertex_bytes + face.itemsize * counts["face"]], dtype=face)["indices"]
     return vertices.astype(np.float32), faces.astype(np.int32)
 
 
-def write_ply_atomic(path: str, vertices: np.ndarray, faces: np.ndarray) -> None:
-    write_file_atomic(path, lambda handle: handle.write(ply_bytes(vertices, faces)))
+def write_ply_atomic(path: str, vertices: np.ndarray, faces: np.ndarray, materials: np.ndarray | None = None) -> None:
+    write_file_atomic(path, lambda handle: handle.write(ply_bytes(vertices, faces, materials)))
 
 
 def geometry_record(triangle_count: int, vertex_count: int, left_out: dict[str, str],

@@ -44,6 +44,10 @@ class TrainConfig:
     # [-1.5, 1.5]³), keeping its cell count, and again after each later growth; 0: never (auto: at
     # the first growth).
     fit_box_at: int = 0
+    # Marched models: rays that meet the scene's clear glass (from the occupancy prior: the
+    # dataset's true surface and the IOR its profile gives) are bent through it and split by
+    # Fresnel's equations, the field marched along each part (model_components/glass.py).
+    refraction: bool = False
     # Grid models: start the occupancy grid from the dataset's occupancy prior (Blender's
     # geometry, occupancy_prior.npz) and never mark a cell it leaves out: "surface" (cells
     # the surfaces pass through, with a margin), "solid" (those and what they enclose), "none",

@@ -42,22 +42,39 @@ class _Element:
 
 def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(vertices [V, 3] float64, triangles [F, 3] int64) of the PLY file at ``path``."""
-    path = Path(path)
+    vertices, faces, _ = _read(Path(path))
+    return vertices, faces
+
+
+def read_face_materials(path: Path) -> np.ndarray | None:
+    """Each triangle's material ``[F]`` int64 (an index into the scene profile's materials) where
+    the file has ``datasets_gen``'s ``face_material`` element beside triangles alone; else None
+    (a file written before it, or another tool's)."""
+    _, faces, tables = _read(Path(path))
+    table = tables.get("face_material")
+    if table is None or "material" not in (table.dtype.names or ()) or len(table) != len(faces):
+        return None
+    return table["material"].astype(np.int64)
+
+
+def _read(path: Path) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """``read_ply``'s arrays, and the tables of a binary file's other elements of scalars alone."""
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise NerfError(f"{path}: cannot read the mesh ({exc.strerror or exc})") from None
     fmt, elements, body = _header(path, data)
+    tables: dict[str, np.ndarray] = {}
     try:
         if fmt == "ascii":
             vertices, faces = _ascii_body(elements, body)
         else:
-            vertices, faces = _binary_body(path, elements, body, ENDIAN[fmt])
+            vertices, faces = _binary_body(path, elements, body, ENDIAN[fmt], tables)
     except (ValueError, IndexError) as exc:
         raise NerfError(f"{path}: not a readable PLY mesh: {exc}") from None
     if len(vertices) and len(faces) and not 0 <= faces.min() <= faces.max() < len(vertices):
         raise NerfError(f"{path}: a face names a vertex that is not there")
-    return vertices, faces
+    return vertices, faces, tables
 
 
 def _header(path: Path, data: bytes) -> tuple[str, list[_Element], bytes]:
@@ -109,7 +126,8 @@ def _ascii_body(elements: list[_Element], body: bytes) -> tuple[np.ndarray, np.n
     return vertices, _fans(polygons)
 
 
-def _binary_body(path: Path, elements: list[_Element], body: bytes, endian: str) -> tuple[np.ndarray, np.ndarray]:
+def _binary_body(path: Path, elements: list[_Element], body: bytes, endian: str,
+                 tables: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     offset, vertices, faces = 0, np.zeros((0, 3)), np.zeros((0, 3), np.int64)
     for element in elements:
         if element.lists and (element.name != "face" or element.scalars or len(element.lists) > 1):
@@ -122,6 +140,7 @@ def _binary_body(path: Path, elements: list[_Element], body: bytes, endian: str)
         dtype = np.dtype([(name, endian + kind) for name, kind in element.scalars])
         table = np.frombuffer(body, dtype=dtype, count=element.count, offset=offset)
         offset += dtype.itemsize * element.count
+        tables[element.name] = table
         if element.name == "vertex":
             vertices = np.stack([table[axis].astype(np.float64) for axis in "xyz"], axis=1)
     return vertices, faces

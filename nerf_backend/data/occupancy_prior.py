@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import math
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +33,7 @@ from nerf_contract.dataset_layout import APPEARANCE_REGIONS, GEOMETRY_NAME, PROF
 
 from ..core.errors import DatasetError
 from ..core.mesh_normals import corner_normals, normal_volume
-from ..core.ply import read_ply
+from ..core.ply import read_face_materials, read_ply
 
 PRIOR_KINDS = ("surface", "solid")
 # Cells along the longest side of ``surface_grid``'s box.
@@ -62,6 +62,12 @@ class OccupancyPrior:
     regions: Tensor | None = None
     # The dataset's true surface (``scene_geometry.ply``), where it has one: its normals.
     geometry: Path | None = None
+    # The scene's clear glass: its materials' IOR by their index in the profile's materials
+    # (``clear_glass``; empty without any).
+    glass_materials: dict[int, float] = field(default_factory=dict)
+    # Whether every transmissive material is clear glass (a geometry file without each face's
+    # material then takes the transmissive cells' triangles as glass).
+    all_transmissive_clear: bool = False
 
     @property
     def box_max(self) -> tuple[float, float, float]:
@@ -126,6 +132,44 @@ class OccupancyPrior:
                 normals = normal_volume(vertices, faces, corner_normals(vertices, faces), low, cell, shape)  # type: ignore[arg-type]
         return regions, torch.from_numpy(normals), torch.from_numpy(low).float(), torch.from_numpy(high).float()
 
+    def glass_surfaces(self) -> tuple[Tensor, Tensor, Tensor] | None:
+        """The true surface's triangles of clear glass ``corners [T, 3, 3]``, their smooth
+        normals at each corner ``[T, 3, 3]`` and their IOR ``[T]`` (``model_components.glass``);
+        None without clear glass or geometry. Each triangle's material is in the geometry file
+        (``read_face_materials``); in a file written before it, a triangle is glass where its
+        corners and centre all lie in cells the prior says are transmissive, and only where
+        every transmissive material is clear glass of one IOR."""
+        if not self.glass_materials or self.geometry is None:
+            return None
+        vertices, faces = read_ply(self.geometry)
+        if not len(faces):
+            return None
+        materials = read_face_materials(self.geometry)
+        if materials is not None:
+            iors = np.array([self.glass_materials.get(int(m), 0.0) for m in range(int(materials.max()) + 1)])
+            ior = iors[materials]
+        else:
+            ior = np.zeros(len(faces))
+            same = set(self.glass_materials.values())
+            if self.regions is not None and self.all_transmissive_clear and len(same) == 1:
+                ior[self._in_transmissive_cells(vertices[faces])] = same.pop()
+        glass = ior > 0
+        if not glass.any():
+            return None
+        normals = corner_normals(vertices, faces)[glass]
+        return (torch.from_numpy(vertices[faces][glass]).float(), torch.from_numpy(normals).float(),
+                torch.from_numpy(ior[glass]).float())
+
+    def _in_transmissive_cells(self, corners: np.ndarray) -> np.ndarray:
+        """``[T]`` whether each triangle's corners and centre all lie in transmissive cells."""
+        points = np.concatenate([corners, corners.mean(axis=1, keepdims=True)], axis=1)
+        cells = np.floor((points - np.asarray(self.box_min)) / self.cell_size).astype(np.int64)
+        shape = np.asarray(self.regions.shape)
+        inside = ((cells >= 0) & (cells < shape)).all(axis=2)
+        cells = np.clip(cells, 0, shape - 1)
+        regions = self.regions.numpy()[cells[..., 0], cells[..., 1], cells[..., 2]]
+        return (inside & (regions == APPEARANCE_REGIONS.index("transmissive"))).all(axis=1)
+
     def _overlapping(self, mask: Tensor, box_min: tuple[float, ...], box_max: tuple[float, ...],
                      cells: tuple[int, int, int]) -> Tensor:
         """``[Gx, Gy, Gz]`` bool: the grid's cells that overlap or touch a cell set in ``mask``
@@ -158,7 +202,8 @@ def load_occupancy_prior(dataset_dir: Path | str, kind: str) -> OccupancyPrior |
     if not profile_path.is_file():
         return None
     try:
-        record = json.loads(profile_path.read_text()).get("occupancy_prior")
+        profile = json.loads(profile_path.read_text())
+        record = profile.get("occupancy_prior")
     except (json.JSONDecodeError, AttributeError, UnicodeDecodeError):
         return None  # the profile's own loader reports a broken profile
     if not isinstance(record, dict):
@@ -200,4 +245,60 @@ def load_occupancy_prior(dataset_dir: Path | str, kind: str) -> OccupancyPrior |
     return OccupancyPrior(torch.from_numpy(occupied.copy()), tuple(box_min.tolist()), cell_size, kind,  # type: ignore[arg-type]
                           margin_cells, None if surface_cells is None else torch.from_numpy(surface_cells.copy()),
                           None if regions is None else torch.from_numpy(regions.copy()),
-                          geometry if (geometry := Path(dataset_dir) / GEOMETRY_NAME).is_file() else None)
+                          geometry if (geometry := Path(dataset_dir) / GEOMETRY_NAME).is_file() else None,
+                          *_glass_facts(profile.get("materials")))
+
+
+# Clear glass: a material Blender renders as a smooth, colourless dielectric that lets (nearly)
+# all light through, the kind whose rays ``model_components.glass`` bends (rough or partly
+# transmissive glass scatters light the bent rays do not follow, and tinted glass colours it:
+# glass_and_gloss's green cube scored 0.62 dB less with its rays bent untinted).
+CLEAR_GLASS_MIN_TRANSMISSION = 0.9
+CLEAR_GLASS_MAX_ROUGHNESS = 0.1
+CLEAR_GLASS_MIN_BASE_COLOUR = 0.9
+
+
+def _glass_facts(materials) -> tuple[dict[int, float], bool]:
+    """The profile's clear glass materials' IOR by index, and whether every transmissive
+    material is clear glass."""
+    if not isinstance(materials, list):
+        return {}, False
+    transmissive = [(index, m) for index, m in enumerate(materials)
+                    if isinstance(m, dict) and m.get("region") == "transmissive"]
+    glass = {index: ior for index, m in transmissive if (ior := clear_glass(m)) is not None}
+    return glass, bool(transmissive) and len(glass) == len(transmissive)
+
+
+def clear_glass(material: dict) -> float | None:
+    """A profile material's IOR where it is clear glass: transmissive, with constant inputs:
+    transmission at least CLEAR_GLASS_MIN_TRANSMISSION, roughness at most
+    CLEAR_GLASS_MAX_ROUGHNESS, a base colour of at least CLEAR_GLASS_MIN_BASE_COLOUR in each
+    channel, metallic 0, alpha 1; else None. A profile written before the base colour was read
+    has no clear glass.
+
+    Example:
+        >>> glass = {"region": "transmissive", "appearance": {"inputs": {"transmission": {"value": 1.0},
+        ...          "roughness": {"value": 0.0}, "metallic": {"value": 0.0}, "ior": {"value": 1.45},
+        ...          "base_colour": {"value": [1.0, 1.0, 1.0]}}}}
+        >>> clear_glass(glass)
+        1.45
+        >>> clear_glass({"region": "transmissive", "appearance": {"inputs": {**glass["appearance"]["inputs"],
+        ...             "roughness": {"value": 0.5}}}}) is None
+        True
+    """
+    if not isinstance(material, dict) or material.get("region") != "transmissive":
+        return None
+    inputs = (material.get("appearance") or {}).get("inputs") or {}
+    value = {name: (inputs.get(name) or {}).get("value", default)
+             for name, default in (("transmission", None), ("roughness", 0.5), ("metallic", 0.0),
+                                   ("alpha", 1.0), ("ior", None))}
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value.values()):
+        return None
+    colour = (inputs.get("base_colour") or {}).get("value")
+    if not (isinstance(colour, list) and len(colour) == 3 and all(isinstance(c, (int, float)) for c in colour)
+            and min(colour) >= CLEAR_GLASS_MIN_BASE_COLOUR):
+        return None
+    if (value["transmission"] < CLEAR_GLASS_MIN_TRANSMISSION or value["roughness"] > CLEAR_GLASS_MAX_ROUGHNESS
+            or value["metallic"] != 0 or value["alpha"] < 1 or not 1.0 < value["ior"] < 4.0):
+        return None
+    return float(value["ior"])

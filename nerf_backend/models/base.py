@@ -34,6 +34,7 @@ class ModelSettings(Protocol):
     occupancy_alpha_threshold: float
     render_alpha_threshold: float
     fit_box_at: int
+    refraction: bool
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,7 @@ from ..data.occupancy_prior import OccupancyPrior
 from ..field_components.grid_encodings import Vertices
 from ..fields.base import MarchableField
 from ..model_components.compiled_march import RENDER_CHUNK as COMPILED_RENDER_CHUNK
+from ..model_components.glass import GlassSurfaces
 from ..model_components.compiled_march import (VolumeDensity, compiled_lit_samples, compiled_march_library,
                                                render_marched_compiled)
 from ..model_components.marcher import (DRAFT_STOP, EXACT_STOP, OPAQUE_TRANSMITTANCE, render_marched,
@@ -38,11 +39,13 @@ class MarchConfig:
     occupancy_alpha_threshold: float = 1e-4  # cells that cannot reach this alpha in one step are empty
     render_alpha_threshold: float = 1e-2  # the same, for rendering only (TrainConfig's)
     fit_box_at: int = 0  # scheduled step at which the box is fitted to the occupied cells; 0: never
+    refraction: bool = False  # rays bent through the scene's clear glass (model_components/glass.py)
 
     @classmethod
     def from_settings(cls, settings: ModelSettings) -> "MarchConfig":
         return cls(settings.grid_step_ratio, settings.occupancy_warmup, settings.occupancy_every,
-                   settings.occupancy_alpha_threshold, settings.render_alpha_threshold, settings.fit_box_at)
+                   settings.occupancy_alpha_threshold, settings.render_alpha_threshold, settings.fit_box_at,
+                   bool(getattr(settings, "refraction", False)))
 
 
 # Fitting the box: the bounds of the pieces of occupied cells of at least FIT_MIN_PART of the
@@ -87,6 +90,9 @@ class MarchedModel(Model):
         self._fit_sampling_to_field()
         if prior is not None and getattr(field, "region_aware", False):  # what Blender says the surface is
             field.surface_facts.set(*prior.surface_grid())
+        self.glass = GlassSurfaces() if march.refraction else None
+        if self.glass is not None and prior is not None and (surfaces := prior.glass_surfaces()) is not None:
+            self.glass.set(*surfaces)
 
     @classmethod
     def of(cls, field_class: type[MarchableField]) -> type["MarchedModel"]:
@@ -275,6 +281,8 @@ class MarchedModel(Model):
         return "; ".join(notes) or None
 
     def match_state(self, state: dict[str, Tensor]) -> None:
+        if self.glass is not None:
+            self.glass.match_state(state, "glass.")
         field_state = {key.removeprefix("field."): value for key, value in state.items() if key.startswith("field.")}
         if self.field.match_state(field_state):
             self._fit_sampling_to_field()
@@ -361,6 +369,33 @@ class MarchedModel(Model):
         self, origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor,
         background: Tensor | float = 1.0, generator: torch.Generator | None = None,
     ) -> list[RenderOutput]:
+        paths = self.glass.trace(origins, directions) if self.glass is not None else None
+        if paths is None:
+            return self._march_rays(origins, directions, t_near, t_far, background, generator)
+        # Rays that meet glass are marched up to it over no background, in the same pass as the
+        # rays beyond it (those leaving it, and those its surface reflects, over their rays'
+        # background); what shows at the glass is then laid under each ray's own samples.
+        count, met = origins.shape[0], paths.rays
+        backgrounds = torch.as_tensor(background, dtype=origins.dtype, device=origins.device).expand(count, 3)
+        beyond_background = backgrounds.index_select(0, met).repeat(2, 1)
+        backgrounds = backgrounds.index_fill(0, met, 0.0)
+        box_min, box_max = self.field.box_min.to(origins.dtype), self.field.box_max.to(origins.dtype)
+        _, beyond_far, _ = ray_box_intersection(paths.origins, paths.directions, box_min, box_max)
+        near_met = t_near.index_select(0, met)
+        up_to_glass = t_far.index_put((met,), torch.maximum(torch.minimum(t_far.index_select(0, met),
+                                                                            paths.t_entry.to(t_far.dtype)), near_met))
+        out = self._march_rays(torch.cat([origins, paths.origins]), torch.cat([directions, paths.directions]),
+                               torch.cat([t_near, torch.zeros_like(beyond_far)]), torch.cat([up_to_glass, beyond_far]),
+                               torch.cat([backgrounds, beyond_background]), generator)[0]
+        seen = paths.colour_seen(out.rgb[count:])
+        rgb = out.rgb[:count].index_add(0, met, (1.0 - out.opacity.index_select(0, met))[:, None] * seen.to(out.rgb.dtype))
+        return [RenderOutput(rgb=rgb, depth=out.depth[:count], opacity=out.opacity[:count],
+                             weights=None if out.weights is None else out.weights[:count],
+                             t_edges=None if out.t_edges is None else out.t_edges[:count],
+                             field_samples=out.field_samples)]
+
+    def _march_rays(self, origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor,
+                    background: Tensor | float, generator: torch.Generator | None) -> list[RenderOutput]:
         if self.box_fitted:  # the rays' bounds are the scene's; the field now holds less
             t_near, t_far = self._within_field_box(origins, directions, t_near, t_far)
         march = dict(occupancy=self.occupancy, step=self.step, steps=self.samples_per_ray, background=background,

@@ -1,0 +1,233 @@
+"""Rays bent through the scene's clear glass (core/refraction.py, model_components/glass.py),
+against optics worked out by hand: a slab shifts a ray without turning it, a right-angle prism
+turns it by total internal reflection, a ball's centre ray goes straight; the compiled walk of the
+hierarchy finds what testing every triangle finds; and the model marches the field beyond the
+glass with the gradients reaching it."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from nerf_backend.core.mesh_normals import corner_normals
+from nerf_backend.core.refraction import build_bvh, fresnel_reflectance, nearest_triangle_hits
+from nerf_backend.data.occupancy_prior import OccupancyPrior, clear_glass
+from nerf_backend.kernels.build import load_kernel
+from nerf_backend.model_components.glass import SURFACE_OFFSET, GlassSurfaces
+
+IOR = 1.5
+
+
+def _box(low, high) -> np.ndarray:
+    """[12, 3, 3] the triangles of an axis-aligned box."""
+    x0, y0, z0 = low
+    x1, y1, z1 = high
+    v = np.array([[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0],
+                  [x0, y0, z1], [x1, y0, z1], [x1, y1, z1], [x0, y1, z1]], np.float32)
+    quads = [(0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (2, 3, 7, 6), (1, 2, 6, 5), (0, 4, 7, 3)]
+    return np.stack([v[[a, b, c]] for a, b, c, d in quads] + [v[[a, c, d]] for a, b, c, d in quads])
+
+
+def _glass(triangles: np.ndarray, smooth: bool = False) -> GlassSurfaces:
+    vertices, faces = np.unique(triangles.reshape(-1, 3), axis=0, return_inverse=True)
+    faces = faces.reshape(-1, 3)
+    normals = corner_normals(vertices, faces, smooth_angle_deg=180.0 if smooth else 1.0)
+    glass = GlassSurfaces()
+    glass.set(torch.from_numpy(vertices[faces]), torch.from_numpy(normals).float(), torch.full((len(faces),), IOR))
+    return glass
+
+
+def _sphere(radius: float, rings: int = 48, segments: int = 96) -> np.ndarray:
+    theta = np.linspace(0, math.pi, rings + 1)
+    phi = np.linspace(0, 2 * math.pi, segments + 1)
+    p = radius * np.stack([np.sin(theta)[:, None] * np.cos(phi), np.sin(theta)[:, None] * np.sin(phi),
+                           np.cos(theta)[:, None] * np.ones_like(phi)], axis=-1)
+    quads = [(p[i, j], p[i + 1, j], p[i + 1, j + 1], p[i, j + 1]) for i in range(rings) for j in range(segments)]
+    triangles = [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]
+    triangles = [t for t in triangles if np.linalg.norm(np.cross(t[1] - t[0], t[2] - t[0])) > 1e-12]
+    return np.asarray(triangles, np.float32)
+
+
+@pytest.mark.parametrize("degrees", [0.0, 20.0, 45.0, 70.0])
+def test_a_slab_shifts_a_ray_sideways_without_turning_it(degrees):
+    thickness = 0.4
+    glass = _glass(_box((-5, -5, 0.0), (5, 5, thickness)))
+    angle = math.radians(degrees)
+    direction = torch.tensor([[math.sin(angle), 0.0, math.cos(angle)]])
+    paths = glass.trace(torch.tensor([[0.0, 0.0, -1.0]]), direction)
+    assert paths.rays.tolist() == [0] and paths.t_entry.item() == pytest.approx(1.0 / math.cos(angle), rel=1e-5)
+    leaving, reflected = paths.directions
+    assert torch.allclose(leaving, direction[0], atol=1e-5)
+    assert torch.allclose(reflected, torch.tensor([math.sin(angle), 0.0, -math.cos(angle)]), atol=1e-5)
+    # Snell: inside at θt, sin θt = sin θ / n; the exit lies thickness · tan θt further along x.
+    inside = math.asin(math.sin(angle) / IOR)
+    entry_x = math.tan(angle)
+    # The leaving ray starts SURFACE_OFFSET of the glass's size (1.4e-3 here) beyond the exit.
+    exit_point = paths.origins[0] - SURFACE_OFFSET * math.sqrt(200 + thickness ** 2) * leaving
+    assert exit_point[2].item() == pytest.approx(thickness, abs=1e-5)
+    assert exit_point[0].item() == pytest.approx(entry_x + thickness * math.tan(inside), abs=1e-5)
+    # Fresnel: 4 % head on for n = 1.5; more at a slant.
+    assert paths.fresnel.item() == pytest.approx(float(fresnel_reflectance(
+        direction, torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([1 / IOR]))[0]), abs=1e-6)
+    assert (paths.fresnel.item() == pytest.approx(0.04, abs=1e-4)) == (degrees == 0.0)
+
+
+def test_a_right_angle_prism_turns_a_ray_by_total_internal_reflection():
+    # A prism along y, its cross-section the triangle (0, 0), (1, 0), (0, 1) in (x, z): the right
+    # angle between the faces z = 0 and x = 0, the hypotenuse x + z = 1.
+    a, b, c = np.array([0.0, 0.0]), np.array([1.0, 0.0]), np.array([0.0, 1.0])  # (x, z)
+    def p(xz, y):
+        return [xz[0], y, xz[1]]
+    triangles = []
+    for (u, v) in ((a, b), (b, c), (c, a)):  # the three rectangular faces
+        triangles += [[p(u, -2), p(v, -2), p(v, 2)], [p(u, -2), p(v, 2), p(u, 2)]]
+    triangles += [[p(a, -2), p(c, -2), p(b, -2)], [p(a, 2), p(b, 2), p(c, 2)]]
+    glass = _glass(np.asarray(triangles, np.float32))
+    # Into the face z = 0 from below, straight up: it meets the hypotenuse at 45° (past the
+    # critical angle of 41.8°), is turned to -x, and leaves through the face x = 0 straight.
+    paths = glass.trace(torch.tensor([[0.3, 0.0, -1.0]]), torch.tensor([[0.0, 0.0, 1.0]]))
+    leaving = paths.directions[0]
+    assert torch.allclose(leaving, torch.tensor([-1.0, 0.0, 0.0]), atol=1e-5)
+    assert paths.origins[0, 0].item() == pytest.approx(0.0, abs=1e-3)
+    assert paths.origins[0, 2].item() == pytest.approx(0.7, abs=1e-3)
+
+
+def test_a_balls_centre_ray_goes_straight_and_its_rim_is_bent():
+    glass = _glass(_sphere(1.0), smooth=True)
+    origins = torch.tensor([[0.0, 0.0, -3.0], [0.5, 0.0, -3.0], [3.0, 0.0, -3.0]])
+    directions = torch.tensor([[0.0, 0.0, 1.0]]).expand(3, 3)
+    paths = glass.trace(origins, directions)
+    assert paths.rays.tolist() == [0, 1]
+    straight, bent = paths.directions[0], paths.directions[1]
+    assert torch.allclose(straight, torch.tensor([0.0, 0.0, 1.0]), atol=1e-4)
+    # A ray at height h through a ball of radius 1 turns by 2(θ - θt), θ = asin(h), sin θt = h / n.
+    h = 0.5
+    turn = 2 * (math.asin(h) - math.asin(h / IOR))
+    assert math.degrees(math.acos(bent[2].item())) == pytest.approx(math.degrees(turn), abs=0.3)
+    assert bent[0].item() < 0  # towards the axis
+
+
+@pytest.mark.skipif(load_kernel("ray_mesh")[0] is None, reason="no C compiler: the torch path alone")
+def test_the_compiled_walk_finds_what_every_triangle_finds():
+    generator = torch.Generator().manual_seed(0)
+    triangles = np.concatenate([_sphere(0.8, 12, 24), _box((-1.0, -0.2, -0.3), (0.4, 0.9, 0.1)),
+                                (torch.rand((200, 3, 3), generator=generator).numpy() * 2 - 1).astype(np.float32)])
+    glass = _glass(triangles)
+    origins = torch.rand((3000, 3), generator=generator) * 6 - 3
+    targets = torch.rand((3000, 3), generator=generator) * 2 - 1  # most rays meet something
+    directions = torch.nn.functional.normalize(targets - origins, dim=1)
+    for t_min in (0.0, 0.5):
+        compiled = glass._hits(origins, directions, t_min)
+        every = nearest_triangle_hits(origins, directions, glass.corners, t_min)
+        found = torch.isfinite(every[0])
+        assert found.sum() > 1500 and torch.equal(torch.isfinite(compiled[0]), found)
+        assert torch.allclose(compiled[0][found], every[0][found], atol=1e-5)
+        same_face = compiled[1][found] == every[1][found]
+        assert same_face.float().mean() > 0.999  # a tie at a shared edge may go either way
+        assert torch.allclose(compiled[2][found][same_face], every[2][found][same_face], atol=1e-4)
+
+
+def test_the_hierarchy_holds_every_triangle_once_inside_its_nodes_bounds():
+    triangles = _sphere(1.0, 10, 20)
+    lo, hi, child, order = build_bvh(triangles)
+    assert sorted(order.tolist()) == list(range(len(triangles)))
+    for node, (first, count) in enumerate(child.tolist()):
+        if first < 0:
+            held = triangles[order[-first - 1:-first - 1 + count]]
+            assert (held.min(axis=(0, 1)) >= lo[node] - 1e-6).all() and (held.max(axis=(0, 1)) <= hi[node] + 1e-6).all()
+
+
+@pytest.mark.parametrize("with_materials", [True, False])
+def test_glass_faces_are_the_clear_glass_materials_or_else_those_in_transmissive_cells(tmp_path, with_materials):
+    from datasets_gen.io.surface_mesh import weld, write_ply_atomic
+
+    cube = _box((0.1, 0.1, 0.1), (0.4, 0.4, 0.4))  # clear glass (material 2), in the transmissive cells
+    floor = _box((-1.0, -1.0, -1.0), (1.0, 1.0, -0.9))  # diffuse (material 0), across the whole box
+    inner = _box((0.2, 0.2, 0.2), (0.3, 0.3, 0.3))  # a diffuse thing inside the glass (material 1)
+    materials = np.array([2] * 12 + [0] * 12 + [1] * 12)
+    write_ply_atomic(str(tmp_path / "scene_geometry.ply"),
+                     *weld(np.concatenate([cube, floor, inner]), materials if with_materials else None))
+    regions = torch.zeros((8, 8, 8), dtype=torch.uint8)
+    regions[:, :, :1] = 1  # diffuse
+    regions[4:7, 4:7, 4:7] = 5  # transmissive: [0, 0.75]³
+    prior = OccupancyPrior(regions > 0, (-1.0, -1.0, -1.0), 0.25, "surface", regions=regions,
+                           geometry=tmp_path / "scene_geometry.ply", glass_materials={2: 1.45},
+                           all_transmissive_clear=True)
+    corners, normals, ior = prior.glass_surfaces()
+    # From each face's material, the cube alone; from the cells, the thing inside it too.
+    glass_faces = 12 if with_materials else 24
+    assert corners.shape == (glass_faces, 3, 3) and normals.shape == (glass_faces, 3, 3)
+    assert torch.allclose(ior, torch.full((glass_faces,), 1.45))
+    assert corners.min().item() == pytest.approx(0.1) and corners.max().item() == pytest.approx(0.4)
+    prior.glass_materials = {}  # no clear glass: nothing is bent
+    assert prior.glass_surfaces() is None
+    if not with_materials:  # cells alone cannot tell clear glass from tinted glass beside it
+        prior.glass_materials, prior.all_transmissive_clear = {2: 1.45}, False
+        assert prior.glass_surfaces() is None
+
+
+def test_only_smooth_colourless_fully_transmissive_glass_is_clear():
+    def material(transmission=1.0, roughness=0.0, ior=1.45, region="transmissive", colour=(1.0, 1.0, 1.0)):
+        return {"region": region, "appearance": {"inputs": {
+            "transmission": {"value": transmission}, "roughness": {"value": roughness}, "ior": {"value": ior},
+            "base_colour": {"value": list(colour)}}}}
+    assert clear_glass(material()) == 1.45 and clear_glass(material(ior=1.33)) == 1.33
+    assert clear_glass(material(colour=(0.2, 0.8, 0.3))) is None  # glass_and_gloss's green cube
+    no_colour = material()
+    del no_colour["appearance"]["inputs"]["base_colour"]  # a profile from before the base colour was read
+    assert clear_glass(no_colour) is None
+    assert clear_glass(material(transmission=0.3)) is None  # 20_specular's: partly transmissive
+    assert clear_glass(material(roughness=0.5)) is None
+    varies = material()
+    varies["appearance"]["inputs"]["transmission"] = {"varies": "driven by an Image Texture"}
+    assert clear_glass(varies) is None
+    assert clear_glass(material(region="diffuse")) is None and clear_glass(None) is None
+
+
+def test_a_model_marches_the_field_beyond_the_glass_with_gradients_reaching_it():
+    """The grid model with ``refraction``: a ray that meets the glass is the field up to it over
+    what shows there, (1 − F) of the field along the ray leaving it and F along the reflected one,
+    each marched as any ray is; a ray that misses it is marched as without glass; and in training
+    the loss of the rays that meet the glass reaches the field's parameters."""
+    from conftest import rays_through_box
+
+    from nerf_backend.configs.presets import PRESETS
+    from nerf_backend.core.cameras import ray_box_intersection
+    from nerf_backend.core.scene_bounds import SceneBounds
+    from nerf_backend.models.registry import build_model
+
+    box = SceneBounds((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    torch.manual_seed(3)
+    model = build_model(dataclasses.replace(PRESETS["fast"], refraction=True), box)
+    with torch.no_grad():
+        for parameter in model.field.encoding_parameters():
+            parameter.normal_(0.0, 0.5)
+    model.update_occupancy()
+    ball = _glass(_sphere(0.4, 16, 32), smooth=True)
+    model.glass.set(ball.corners, ball.normals, ball.ior)
+    origins, directions, near, far = rays_through_box(box, 400, seed=4)
+    model.eval()
+    with torch.no_grad():
+        rendered = model(origins, directions, near, far, background=1.0)[0]
+        paths = model.glass.trace(origins, directions)
+        met = paths.rays
+        assert 40 < met.numel() < 360
+        _, beyond_far, _ = ray_box_intersection(paths.origins, paths.directions, model.field.box_min,
+                                                model.field.box_max)
+        beyond = model._march_rays(paths.origins, paths.directions, torch.zeros_like(beyond_far), beyond_far,
+                                   1.0, None)[0]
+        up_to = model._march_rays(origins[met], directions[met], near[met], torch.minimum(far[met], paths.t_entry),
+                                  0.0, None)[0]
+        expected = up_to.rgb + (1.0 - up_to.opacity)[:, None] * paths.colour_seen(beyond.rgb)
+        assert torch.allclose(rendered.rgb[met], expected, atol=1e-5)
+        missed = torch.ones(len(origins), dtype=torch.bool).index_fill(0, met, False)
+        straight = model._march_rays(origins[missed], directions[missed], near[missed], far[missed], 1.0, None)[0]
+        assert torch.allclose(rendered.rgb[missed], straight.rgb, atol=1e-6)
+    model.train()
+    trained = model(origins[met], directions[met], near[met], far[met], background=1.0)[0]
+    trained.rgb.sum().backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.field.encoding_parameters())
