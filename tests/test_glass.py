@@ -191,8 +191,9 @@ def test_only_smooth_colourless_fully_transmissive_glass_is_clear():
 def test_a_model_marches_the_field_beyond_the_glass_with_gradients_reaching_it():
     """The grid model with ``refraction``: a ray that meets the glass is the field up to it over
     what shows there, (1 − F) of the field along the ray leaving it and F along the reflected one,
-    each marched as any ray is; a ray that misses it is marched as without glass; and in training
-    the loss of the rays that meet the glass reaches the field's parameters."""
+    each marched as any ray is, over the world's light where they leave; a ray that misses it is
+    marched as without glass; and in training the loss of the rays that meet the glass reaches
+    the field's parameters and the world's."""
     from conftest import rays_through_box
 
     from nerf_backend.configs.presets import PRESETS
@@ -219,7 +220,7 @@ def test_a_model_marches_the_field_beyond_the_glass_with_gradients_reaching_it()
         _, beyond_far, _ = ray_box_intersection(paths.origins, paths.directions, model.field.box_min,
                                                 model.field.box_max)
         beyond = model._march_rays(paths.origins, paths.directions, torch.zeros_like(beyond_far), beyond_far,
-                                   1.0, None)[0]
+                                   model.glass.environment(paths.directions), None)[0]
         up_to = model._march_rays(origins[met], directions[met], near[met], torch.minimum(far[met], paths.t_entry),
                                   0.0, None)[0]
         expected = up_to.rgb + (1.0 - up_to.opacity)[:, None] * paths.colour_seen(beyond.rgb)
@@ -231,3 +232,31 @@ def test_a_model_marches_the_field_beyond_the_glass_with_gradients_reaching_it()
     trained = model(origins[met], directions[met], near[met], far[met], background=1.0)[0]
     trained.rgb.sum().backward()
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.field.encoding_parameters())
+    # The world seen through the glass is learned with the networks.
+    assert model.glass.environment.harmonics.grad.abs().sum() > 0
+    networks = next(group for group in model.parameter_groups() if group.name == "networks")
+    assert any(p is model.glass.environment.harmonics for p in networks.parameters)
+
+
+def test_the_cells_of_clear_glass_alone_are_left_empty_for_the_field(tmp_path):
+    """Where rays are bent through the glass the field holds nothing at it: the prior's cells
+    near the glass and no other surface are emptied; those near another surface stay."""
+    from datasets_gen.io.surface_mesh import weld, write_ply_atomic
+
+    cube = _box((0.1, 0.1, -0.9), (0.6, 0.6, 0.4))  # clear glass standing on the floor
+    floor = _box((-1.0, -1.0, -1.0), (1.0, 1.0, -0.9))
+    write_ply_atomic(str(tmp_path / "scene_geometry.ply"),
+                     *weld(np.concatenate([cube, floor]), np.array([1] * 12 + [0] * 12)))
+    occupied = torch.ones((16, 16, 16), dtype=torch.bool)
+    prior = OccupancyPrior(occupied, (-1.0, -1.0, -1.0), 0.125, "surface", margin_cells=1,
+                           geometry=tmp_path / "scene_geometry.ply", glass_materials={1: 1.45})
+    emptied = ~prior.without_clear_glass().occupied
+    centre = (torch.nonzero(emptied).float() + 0.5) * 0.125 - 1.0
+    assert emptied.sum() > 100
+    # Every emptied cell lies by the glass, more than a grown cell above the floor.
+    assert (centre[:, 2] > -0.9 + 2 * 0.125).all()
+    assert ((centre[:, :2] > 0.1 - 3 * 0.125) & (centre[:, :2] < 0.6 + 3 * 0.125)).all()
+    # The glass's top face's cells are empty; far cells and the floor's stay.
+    assert emptied[9, 9, 11] and not emptied[0, 0, 0] and not emptied[9, 9, 0] and not emptied[15, 15, 15]
+    prior.glass_materials = {}
+    assert prior.without_clear_glass() is prior

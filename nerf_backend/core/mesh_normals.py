@@ -77,15 +77,8 @@ def normal_volume(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, 
         ([0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0])
     """
     sums = np.zeros((*shape, 3))
-    corners = vertices[faces]
-    edges = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
-    counts = np.floor(edges / cell_size * _SAMPLES_PER_CELL).astype(np.int64) + 1
-    for n in np.unique(counts):
-        chosen = counts == n
-        a, b = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
-        keep = a + b <= n
-        weights = np.stack([1.0 - (a[keep] + b[keep]) / n, a[keep] / n, b[keep] / n], axis=1)  # [S, 3]
-        points = np.einsum("sk,tkc->tsc", weights, corners[chosen]).reshape(-1, 3)
+    for chosen, weights in _surface_samples(vertices[faces], cell_size):
+        points = np.einsum("sk,tkc->tsc", weights, vertices[faces][chosen]).reshape(-1, 3)
         shaded = np.einsum("sk,tkc->tsc", weights, normals[chosen]).reshape(-1, 3)
         cells = np.floor((points - box_min) / cell_size).astype(np.int64)
         inside = ((cells >= 0) & (cells < np.asarray(shape))).all(axis=1)
@@ -99,6 +92,45 @@ def normal_volume(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, 
         sums[empty] = around[empty]
     length = np.linalg.norm(sums, axis=3, keepdims=True)
     return np.where(length > 1e-12, sums / np.maximum(length, 1e-30), 0.0).astype(np.float32)
+
+
+def surface_cells(corners: np.ndarray, box_min: np.ndarray, cell_size: float, shape: tuple[int, int, int],
+                  grow_cells: int = 0) -> np.ndarray:
+    """``[nx, ny, nz]`` bool: the cells of the grid (cubes of ``cell_size`` from ``box_min``)
+    that triangles ``corners [T, 3, 3]`` pass through, grown by ``grow_cells`` cells each way.
+
+    Example:
+        >>> import numpy as np
+        >>> square = np.array([[[0, 0, 0.6], [1, 0, 0.6], [1, 1, 0.6]]], np.float64)
+        >>> marked = surface_cells(square, np.zeros(3), 0.25, (4, 4, 4))
+        >>> int(marked.sum()), bool(marked[3, 0, 2]), bool(marked[0, 3, 2])  # the half below the diagonal
+        (10, True, False)
+    """
+    marked = np.zeros(shape, bool)
+    for chosen, weights in _surface_samples(corners, cell_size):
+        points = np.einsum("sk,tkc->tsc", weights, corners[chosen]).reshape(-1, 3)
+        cells = np.floor((points - box_min) / cell_size).astype(np.int64)
+        inside = ((cells >= 0) & (cells < np.asarray(shape))).all(axis=1)
+        marked[tuple(cells[inside].T)] = True
+    for _ in range(grow_cells):
+        grown = marked.copy()
+        for axis in range(3):
+            for shift in (1, -1):
+                grown |= _shifted(marked, axis, shift)
+        marked = grown
+    return marked
+
+
+def _surface_samples(corners: np.ndarray, cell_size: float):
+    """Barycentric samples of triangles ``corners [T, 3, 3]``, ``_SAMPLES_PER_CELL`` along a
+    cell's edge so that every cell a triangle crosses gets some: ``(chosen [T] bool, weights
+    [S, 3])`` for each group of triangles sampled alike."""
+    edges = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
+    counts = np.floor(edges / cell_size * _SAMPLES_PER_CELL).astype(np.int64) + 1
+    for n in np.unique(counts):
+        a, b = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+        keep = a + b <= n
+        yield counts == n, np.stack([1.0 - (a[keep] + b[keep]) / n, a[keep] / n, b[keep] / n], axis=1)
 
 
 def _shifted(values: np.ndarray, axis: int, shift: int) -> np.ndarray:

@@ -19,6 +19,7 @@ Example:
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import zipfile
@@ -32,7 +33,7 @@ from torch import Tensor
 from nerf_contract.dataset_layout import APPEARANCE_REGIONS, GEOMETRY_NAME, PROFILE_NAME
 
 from ..core.errors import DatasetError
-from ..core.mesh_normals import corner_normals, normal_volume
+from ..core.mesh_normals import corner_normals, normal_volume, surface_cells
 from ..core.ply import read_face_materials, read_ply
 
 PRIOR_KINDS = ("surface", "solid")
@@ -139,6 +140,36 @@ class OccupancyPrior:
         (``read_face_materials``); in a file written before it, a triangle is glass where its
         corners and centre all lie in cells the prior says are transmissive, and only where
         every transmissive material is clear glass of one IOR."""
+        found = self._glass_faces()
+        if found is None:
+            return None
+        vertices, faces, ior = found
+        glass = ior > 0
+        normals = corner_normals(vertices, faces)[glass]
+        return (torch.from_numpy(vertices[faces][glass]).float(), torch.from_numpy(normals).float(),
+                torch.from_numpy(ior[glass]).float())
+
+    def without_clear_glass(self) -> "OccupancyPrior":
+        """This prior with the cells that hold clear glass and nothing else left empty: where
+        rays are bent through the glass (``model_components.glass``) the field holds nothing
+        at the glass, and density there would stand in the bent rays' way; cells within a
+        cell of any other surface (the board a ball rests on) stay."""
+        found = self._glass_faces()
+        if found is None:
+            return self
+        vertices, faces, ior = found
+        corners, glass = vertices[faces], ior > 0
+        low, shape = np.asarray(self.box_min), tuple(self.occupied.shape)
+        grow = self.margin_cells + 1
+        near_glass = surface_cells(corners[glass], low, self.cell_size, shape, grow)  # type: ignore[arg-type]
+        near_other = surface_cells(corners[~glass], low, self.cell_size, shape, grow)  # type: ignore[arg-type]
+        keep = torch.from_numpy(~(near_glass & ~near_other))
+        return dataclasses.replace(self, occupied=self.occupied & keep,
+                                   surface_cells=None if self.surface_cells is None else self.surface_cells & keep)
+
+    def _glass_faces(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The true surface's vertices and faces, and each face's IOR where it is clear glass
+        (0 elsewhere); None without clear glass or geometry."""
         if not self.glass_materials or self.geometry is None:
             return None
         vertices, faces = read_ply(self.geometry)
@@ -153,12 +184,7 @@ class OccupancyPrior:
             same = set(self.glass_materials.values())
             if self.regions is not None and self.all_transmissive_clear and len(same) == 1:
                 ior[self._in_transmissive_cells(vertices[faces])] = same.pop()
-        glass = ior > 0
-        if not glass.any():
-            return None
-        normals = corner_normals(vertices, faces)[glass]
-        return (torch.from_numpy(vertices[faces][glass]).float(), torch.from_numpy(normals).float(),
-                torch.from_numpy(ior[glass]).float())
+        return (vertices, faces, ior) if (ior > 0).any() else None
 
     def _in_transmissive_cells(self, corners: np.ndarray) -> np.ndarray:
         """``[T]`` whether each triangle's corners and centre all lie in transmissive cells."""

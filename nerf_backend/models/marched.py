@@ -84,15 +84,16 @@ class MarchedModel(Model):
         self.field = field
         self.march = march
         self.prior = prior
+        self.glass = GlassSurfaces() if march.refraction else None
+        if self.glass is not None and prior is not None and (surfaces := prior.glass_surfaces()) is not None:
+            self.glass.set(*surfaces)
+            self.prior = prior.without_clear_glass()  # the field holds nothing at the glass
         self._fit_tried = False
         self.box_fitted = False  # the field narrowed to a box inside the one it was built over
         self._note: str | None = None
         self._fit_sampling_to_field()
         if prior is not None and getattr(field, "region_aware", False):  # what Blender says the surface is
             field.surface_facts.set(*prior.surface_grid())
-        self.glass = GlassSurfaces() if march.refraction else None
-        if self.glass is not None and prior is not None and (surfaces := prior.glass_surfaces()) is not None:
-            self.glass.set(*surfaces)
 
     @classmethod
     def of(cls, field_class: type[MarchableField]) -> type["MarchedModel"]:
@@ -373,11 +374,11 @@ class MarchedModel(Model):
         if paths is None:
             return self._march_rays(origins, directions, t_near, t_far, background, generator)
         # Rays that meet glass are marched up to it over no background, in the same pass as the
-        # rays beyond it (those leaving it, and those its surface reflects, over their rays'
-        # background); what shows at the glass is then laid under each ray's own samples.
+        # rays beyond it (those leaving it, and those its surface reflects, over the world's
+        # light: ``Environment``); what shows at the glass is then laid under each ray's samples.
         count, met = origins.shape[0], paths.rays
         backgrounds = torch.as_tensor(background, dtype=origins.dtype, device=origins.device).expand(count, 3)
-        beyond_background = backgrounds.index_select(0, met).repeat(2, 1)
+        beyond_background = self.glass.environment(paths.directions).to(origins.dtype)
         backgrounds = backgrounds.index_fill(0, met, 0.0)
         box_min, box_max = self.field.box_min.to(origins.dtype), self.field.box_max.to(origins.dtype)
         _, beyond_far, _ = ray_box_intersection(paths.origins, paths.directions, box_min, box_max)

@@ -81,9 +81,9 @@ REFLECTION_FREQUENCIES = 6
 # through it as Cycles sees it, not a colour the network must learn to change with the view.
 REFRACTION_REASON = (
     "the scene's clear glass ({triangles} triangles, IOR {ior}) bends the rays that meet it, as Cycles does, and "
-    "the field is marched beyond it: measured at 100×100 after 120 s on 2 CPU cores, glass_over_checker (a glass ball on a checkerboard) "
-    "scored 29.30 dB against 27.24 with straight rays, glass_and_gloss (a clear ball bent, a green cube not) 30.95 "
-    "against 31.06 (docs/benchmarks.md, \"Rays bent through glass\")")
+    "the field is marched beyond it: measured at 100×100 after 120 s on 2 CPU cores, glass_over_checker (a glass "
+    "ball on a checkerboard) scored 33.06 dB against 27.23 with straight rays, glass_and_gloss (a clear ball bent, "
+    "a green cube not) 32.00 against 31.19 (docs/benchmarks.md, \"Rays bent through glass\")")
 REFLECTION_FREQUENCIES_REASON = (
     "the reflected view's encoding in 6 bands: a mirror's reflections are as sharp as the world it reflects; "
     "mirror_in_room scored 34.66 dB with 6 against 33.86 with 4 (docs/benchmarks.md)")
