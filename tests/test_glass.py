@@ -1,4 +1,4 @@
-"""Rays bent through the scene's clear glass (core/refraction.py, model_components/glass.py),
+"""Rays bent through the scene's glass (core/refraction.py, model_components/glass.py),
 against optics worked out by hand: a slab shifts a ray without turning it, a right-angle prism
 turns it by total internal reflection, a ball's centre ray goes straight; the compiled walk of the
 hierarchy finds what testing every triangle finds; and the model marches the field beyond the
@@ -15,7 +15,7 @@ import torch
 
 from nerf_backend.core.mesh_normals import corner_normals
 from nerf_backend.core.refraction import build_bvh, fresnel_reflectance, nearest_triangle_hits
-from nerf_backend.data.occupancy_prior import OccupancyPrior, clear_glass
+from nerf_backend.data.occupancy_prior import OccupancyPrior, smooth_glass
 from nerf_backend.kernels.build import load_kernel
 from nerf_backend.model_components.glass import SURFACE_OFFSET, GlassSurfaces
 
@@ -142,10 +142,10 @@ def test_the_hierarchy_holds_every_triangle_once_inside_its_nodes_bounds():
 
 
 @pytest.mark.parametrize("with_materials", [True, False])
-def test_glass_faces_are_the_clear_glass_materials_or_else_those_in_transmissive_cells(tmp_path, with_materials):
+def test_glass_faces_are_the_glass_materials_or_else_those_in_transmissive_cells(tmp_path, with_materials):
     from datasets_gen.io.surface_mesh import weld, write_ply_atomic
 
-    cube = _box((0.1, 0.1, 0.1), (0.4, 0.4, 0.4))  # clear glass (material 2), in the transmissive cells
+    cube = _box((0.1, 0.1, 0.1), (0.4, 0.4, 0.4))  # green glass (material 2), in the transmissive cells
     floor = _box((-1.0, -1.0, -1.0), (1.0, 1.0, -0.9))  # diffuse (material 0), across the whole box
     inner = _box((0.2, 0.2, 0.2), (0.3, 0.3, 0.3))  # a diffuse thing inside the glass (material 1)
     materials = np.array([2] * 12 + [0] * 12 + [1] * 12)
@@ -154,38 +154,67 @@ def test_glass_faces_are_the_clear_glass_materials_or_else_those_in_transmissive
     regions = torch.zeros((8, 8, 8), dtype=torch.uint8)
     regions[:, :, :1] = 1  # diffuse
     regions[4:7, 4:7, 4:7] = 5  # transmissive: [0, 0.75]³
+    green = (0.2, 0.8, 0.3)
     prior = OccupancyPrior(regions > 0, (-1.0, -1.0, -1.0), 0.25, "surface", regions=regions,
-                           geometry=tmp_path / "scene_geometry.ply", glass_materials={2: 1.45},
-                           all_transmissive_clear=True)
-    corners, normals, ior = prior.glass_surfaces()
+                           geometry=tmp_path / "scene_geometry.ply", glass_materials={2: (1.45, green)},
+                           all_transmissive_glass=True)
+    corners, normals, ior, glass, colours = prior.glass_surfaces()
     # From each face's material, the cube alone; from the cells, the thing inside it too.
     glass_faces = 12 if with_materials else 24
     assert corners.shape == (glass_faces, 3, 3) and normals.shape == (glass_faces, 3, 3)
-    assert torch.allclose(ior, torch.full((glass_faces,), 1.45))
+    assert torch.allclose(ior, torch.full((glass_faces,), 1.45)) and glass.tolist() == [0] * glass_faces
+    assert torch.allclose(colours, torch.tensor([green]))
     assert corners.min().item() == pytest.approx(0.1) and corners.max().item() == pytest.approx(0.4)
-    prior.glass_materials = {}  # no clear glass: nothing is bent
+    prior.glass_materials = {}  # no glass: nothing is bent
     assert prior.glass_surfaces() is None
-    if not with_materials:  # cells alone cannot tell clear glass from tinted glass beside it
-        prior.glass_materials, prior.all_transmissive_clear = {2: 1.45}, False
+    if not with_materials:  # cells alone cannot tell glass from a rough transmissive material beside it
+        prior.glass_materials, prior.all_transmissive_glass = {2: (1.45, green)}, False
         assert prior.glass_surfaces() is None
 
 
-def test_only_smooth_colourless_fully_transmissive_glass_is_clear():
+def test_two_glasses_each_keep_their_ior_and_tint(tmp_path):
+    from datasets_gen.io.surface_mesh import weld, write_ply_atomic
+
+    write_ply_atomic(str(tmp_path / "scene_geometry.ply"),
+                     *weld(np.concatenate([_box((0.1, 0.1, 0.1), (0.4, 0.4, 0.4)),
+                                           _box((-0.6, -0.6, -0.6), (-0.3, -0.3, -0.3))]),
+                           np.array([4] * 12 + [7] * 12)))
+    prior = OccupancyPrior(torch.ones((8, 8, 8), dtype=torch.bool), (-1.0, -1.0, -1.0), 0.25, "surface",
+                           geometry=tmp_path / "scene_geometry.ply",
+                           glass_materials={4: (1.33, (1.0, 1.0, 1.0)), 7: (1.5, (0.9, 0.2, 0.2))})
+    corners, _, ior, glass, colours = prior.glass_surfaces()
+    low = corners.mean(dim=(1, 2)) < 0
+    assert torch.allclose(ior[low], torch.tensor(1.5)) and torch.allclose(ior[~low], torch.tensor(1.33))
+    assert colours[glass[low]].tolist() == [[0.8999999761581421, 0.20000000298023224, 0.20000000298023224]] * 12
+    surfaces = GlassSurfaces()
+    surfaces.set(*prior.glass_surfaces())
+    # The light through the red glass starts at its colour squared (in and out), the clear one's at 1.
+    paths = surfaces.trace(torch.tensor([[-0.45, -0.45, -3.0], [0.25, 0.25, 3.0]]),
+                           torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]))
+    assert torch.allclose(paths.tint, torch.tensor([[0.81, 0.04, 0.04], [0.999, 0.999, 0.999]]), atol=1e-4)
+    assert surfaces.tint_logits.requires_grad
+
+
+def test_only_smooth_fully_transmissive_nearly_colourless_glass_is_bent():
     def material(transmission=1.0, roughness=0.0, ior=1.45, region="transmissive", colour=(1.0, 1.0, 1.0)):
         return {"region": region, "appearance": {"inputs": {
             "transmission": {"value": transmission}, "roughness": {"value": roughness}, "ior": {"value": ior},
             "base_colour": {"value": list(colour)}}}}
-    assert clear_glass(material()) == 1.45 and clear_glass(material(ior=1.33)) == 1.33
-    assert clear_glass(material(colour=(0.2, 0.8, 0.3))) is None  # glass_and_gloss's green cube
+    assert smooth_glass(material()) == (1.45, (1.0, 1.0, 1.0)) and smooth_glass(material(ior=1.33))[0] == 1.33
+    assert smooth_glass(material(colour=(0.95, 1.0, 0.9))) == (1.45, (0.95, 1.0, 0.9))  # nearly colourless
+    assert smooth_glass(material(colour=(0.8, 0.95, 0.9))) is None  # glass_and_gloss's green cube
     no_colour = material()
     del no_colour["appearance"]["inputs"]["base_colour"]  # a profile from before the base colour was read
-    assert clear_glass(no_colour) is None
-    assert clear_glass(material(transmission=0.3)) is None  # 20_specular's: partly transmissive
-    assert clear_glass(material(roughness=0.5)) is None
+    assert smooth_glass(no_colour) is None
+    assert smooth_glass(material(transmission=0.3)) is None  # 20_specular's: partly transmissive
+    assert smooth_glass(material(roughness=0.5)) is None
     varies = material()
     varies["appearance"]["inputs"]["transmission"] = {"varies": "driven by an Image Texture"}
-    assert clear_glass(varies) is None
-    assert clear_glass(material(region="diffuse")) is None and clear_glass(None) is None
+    assert smooth_glass(varies) is None
+    textured = material()
+    textured["appearance"]["inputs"]["base_colour"] = {"varies": "driven by the Image Texture node 'Label'"}
+    assert smooth_glass(textured) is None
+    assert smooth_glass(material(region="diffuse")) is None and smooth_glass(None) is None
 
 
 def test_a_model_marches_the_field_beyond_the_glass_with_gradients_reaching_it():
@@ -209,7 +238,8 @@ def test_a_model_marches_the_field_beyond_the_glass_with_gradients_reaching_it()
             parameter.normal_(0.0, 0.5)
     model.update_occupancy()
     ball = _glass(_sphere(0.4, 16, 32), smooth=True)
-    model.glass.set(ball.corners, ball.normals, ball.ior)
+    model.glass.set(ball.corners, ball.normals, ball.ior, torch.zeros(len(ball.ior), dtype=torch.long),
+                    torch.tensor([[0.9, 0.8, 0.7]]))
     origins, directions, near, far = rays_through_box(box, 400, seed=4)
     model.eval()
     with torch.no_grad():
@@ -232,25 +262,26 @@ def test_a_model_marches_the_field_beyond_the_glass_with_gradients_reaching_it()
     trained = model(origins[met], directions[met], near[met], far[met], background=1.0)[0]
     trained.rgb.sum().backward()
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.field.encoding_parameters())
-    # The world seen through the glass is learned with the networks.
-    assert model.glass.environment.harmonics.grad.abs().sum() > 0
+    # The world seen through the glass, and the glass's tint, are learned with the networks.
+    assert model.glass.environment.harmonics.grad.abs().sum() > 0 and model.glass.tint_logits.grad.abs().sum() > 0
     networks = next(group for group in model.parameter_groups() if group.name == "networks")
     assert any(p is model.glass.environment.harmonics for p in networks.parameters)
+    assert any(p is model.glass.tint_logits for p in networks.parameters)
 
 
-def test_the_cells_of_clear_glass_alone_are_left_empty_for_the_field(tmp_path):
+def test_the_cells_of_glass_alone_are_left_empty_for_the_field(tmp_path):
     """Where rays are bent through the glass the field holds nothing at it: the prior's cells
     near the glass and no other surface are emptied; those near another surface stay."""
     from datasets_gen.io.surface_mesh import weld, write_ply_atomic
 
-    cube = _box((0.1, 0.1, -0.9), (0.6, 0.6, 0.4))  # clear glass standing on the floor
+    cube = _box((0.1, 0.1, -0.9), (0.6, 0.6, 0.4))  # glass standing on the floor
     floor = _box((-1.0, -1.0, -1.0), (1.0, 1.0, -0.9))
     write_ply_atomic(str(tmp_path / "scene_geometry.ply"),
                      *weld(np.concatenate([cube, floor]), np.array([1] * 12 + [0] * 12)))
     occupied = torch.ones((16, 16, 16), dtype=torch.bool)
     prior = OccupancyPrior(occupied, (-1.0, -1.0, -1.0), 0.125, "surface", margin_cells=1,
-                           geometry=tmp_path / "scene_geometry.ply", glass_materials={1: 1.45})
-    emptied = ~prior.without_clear_glass().occupied
+                           geometry=tmp_path / "scene_geometry.ply", glass_materials={1: (1.45, (1.0, 1.0, 1.0))})
+    emptied = ~prior.without_glass().occupied
     centre = (torch.nonzero(emptied).float() + 0.5) * 0.125 - 1.0
     assert emptied.sum() > 100
     # Every emptied cell lies by the glass, more than a grown cell above the floor.
@@ -259,4 +290,4 @@ def test_the_cells_of_clear_glass_alone_are_left_empty_for_the_field(tmp_path):
     # The glass's top face's cells are empty; far cells and the floor's stay.
     assert emptied[9, 9, 11] and not emptied[0, 0, 0] and not emptied[9, 9, 0] and not emptied[15, 15, 15]
     prior.glass_materials = {}
-    assert prior.without_clear_glass() is prior
+    assert prior.without_glass() is prior

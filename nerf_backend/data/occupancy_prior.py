@@ -63,12 +63,12 @@ class OccupancyPrior:
     regions: Tensor | None = None
     # The dataset's true surface (``scene_geometry.ply``), where it has one: its normals.
     geometry: Path | None = None
-    # The scene's clear glass: its materials' IOR by their index in the profile's materials
-    # (``clear_glass``; empty without any).
-    glass_materials: dict[int, float] = field(default_factory=dict)
-    # Whether every transmissive material is clear glass (a geometry file without each face's
+    # The scene's smooth glass: each material's IOR and colour by its index in the profile's
+    # materials (``smooth_glass``; empty without any).
+    glass_materials: dict[int, tuple[float, tuple[float, float, float]]] = field(default_factory=dict)
+    # Whether every transmissive material is smooth glass (a geometry file without each face's
     # material then takes the transmissive cells' triangles as glass).
-    all_transmissive_clear: bool = False
+    all_transmissive_glass: bool = False
 
     @property
     def box_max(self) -> tuple[float, float, float]:
@@ -133,32 +133,37 @@ class OccupancyPrior:
                 normals = normal_volume(vertices, faces, corner_normals(vertices, faces), low, cell, shape)  # type: ignore[arg-type]
         return regions, torch.from_numpy(normals), torch.from_numpy(low).float(), torch.from_numpy(high).float()
 
-    def glass_surfaces(self) -> tuple[Tensor, Tensor, Tensor] | None:
-        """The true surface's triangles of clear glass ``corners [T, 3, 3]``, their smooth
-        normals at each corner ``[T, 3, 3]`` and their IOR ``[T]`` (``model_components.glass``);
-        None without clear glass or geometry. Each triangle's material is in the geometry file
+    def glass_surfaces(self) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None:
+        """The true surface's triangles of smooth glass ``corners [T, 3, 3]``, their smooth
+        normals at each corner ``[T, 3, 3]``, their IOR ``[T]``, which glass each is ``[T]``
+        (an index of the next) and each glass's colour ``[M, 3]`` (``model_components.glass``);
+        None without glass or geometry. Each triangle's material is in the geometry file
         (``read_face_materials``); in a file written before it, a triangle is glass where its
         corners and centre all lie in cells the prior says are transmissive, and only where
-        every transmissive material is clear glass of one IOR."""
+        every transmissive material is smooth glass, all of one IOR and colour."""
         found = self._glass_faces()
         if found is None:
             return None
-        vertices, faces, ior = found
-        glass = ior > 0
+        vertices, faces, material = found
+        glass = material >= 0
+        kinds = sorted(set(material[glass].tolist()))
+        slot = np.searchsorted(np.asarray(kinds), material[glass])
+        ior = np.asarray([self.glass_materials[k][0] for k in kinds])[slot]
+        colours = torch.tensor([self.glass_materials[k][1] for k in kinds], dtype=torch.float32)
         normals = corner_normals(vertices, faces)[glass]
         return (torch.from_numpy(vertices[faces][glass]).float(), torch.from_numpy(normals).float(),
-                torch.from_numpy(ior[glass]).float())
+                torch.from_numpy(ior).float(), torch.from_numpy(slot).long(), colours)
 
-    def without_clear_glass(self) -> "OccupancyPrior":
-        """This prior with the cells that hold clear glass and nothing else left empty: where
+    def without_glass(self) -> "OccupancyPrior":
+        """This prior with the cells that hold glass and nothing else left empty: where
         rays are bent through the glass (``model_components.glass``) the field holds nothing
         at the glass, and density there would stand in the bent rays' way; cells within a
         cell of any other surface (the board a ball rests on) stay."""
         found = self._glass_faces()
         if found is None:
             return self
-        vertices, faces, ior = found
-        corners, glass = vertices[faces], ior > 0
+        vertices, faces, material = found
+        corners, glass = vertices[faces], material >= 0
         low, shape = np.asarray(self.box_min), tuple(self.occupied.shape)
         grow = self.margin_cells + 1
         near_glass = surface_cells(corners[glass], low, self.cell_size, shape, grow)  # type: ignore[arg-type]
@@ -168,8 +173,8 @@ class OccupancyPrior:
                                    surface_cells=None if self.surface_cells is None else self.surface_cells & keep)
 
     def _glass_faces(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """The true surface's vertices and faces, and each face's IOR where it is clear glass
-        (0 elsewhere); None without clear glass or geometry."""
+        """The true surface's vertices and faces, and each face's glass material (its index in
+        the profile's materials; -1 where it is not glass); None without glass or geometry."""
         if not self.glass_materials or self.geometry is None:
             return None
         vertices, faces = read_ply(self.geometry)
@@ -177,14 +182,13 @@ class OccupancyPrior:
             return None
         materials = read_face_materials(self.geometry)
         if materials is not None:
-            iors = np.array([self.glass_materials.get(int(m), 0.0) for m in range(int(materials.max()) + 1)])
-            ior = iors[materials]
+            material = np.where(np.isin(materials, list(self.glass_materials)), materials, -1)
         else:
-            ior = np.zeros(len(faces))
-            same = set(self.glass_materials.values())
-            if self.regions is not None and self.all_transmissive_clear and len(same) == 1:
-                ior[self._in_transmissive_cells(vertices[faces])] = same.pop()
-        return (vertices, faces, ior) if (ior > 0).any() else None
+            material = np.full(len(faces), -1)
+            kinds = set(self.glass_materials.values())
+            if self.regions is not None and self.all_transmissive_glass and len(kinds) == 1:
+                material[self._in_transmissive_cells(vertices[faces])] = min(self.glass_materials)
+        return (vertices, faces, material) if (material >= 0).any() else None
 
     def _in_transmissive_cells(self, corners: np.ndarray) -> np.ndarray:
         """``[T]`` whether each triangle's corners and centre all lie in transmissive cells."""
@@ -275,41 +279,42 @@ def load_occupancy_prior(dataset_dir: Path | str, kind: str) -> OccupancyPrior |
                           *_glass_facts(profile.get("materials")))
 
 
-# Clear glass: a material Blender renders as a smooth, colourless dielectric that lets (nearly)
-# all light through, the kind whose rays ``model_components.glass`` bends (rough or partly
-# transmissive glass scatters light the bent rays do not follow, and tinted glass colours it:
-# glass_and_gloss's green cube scored 0.62 dB less with its rays bent untinted).
-CLEAR_GLASS_MIN_TRANSMISSION = 0.9
-CLEAR_GLASS_MAX_ROUGHNESS = 0.1
-CLEAR_GLASS_MIN_BASE_COLOUR = 0.9
+# Smooth glass: a material Blender renders as a smooth dielectric that lets (nearly) all light
+# through, the kind whose rays ``model_components.glass`` bends (rough or partly transmissive
+# glass scatters light the bent rays do not follow), nearly colourless: with its green cube
+# (0.8, 0.95, 0.9) bent and tinted too, glass_and_gloss gained 0.60 dB over straight rays, against
+# 0.81 with the cube left straight (docs/benchmarks.md, "Rays bent through glass"). The tint a
+# colour this close to white gives is learned from it.
+GLASS_MIN_TRANSMISSION = 0.9
+GLASS_MAX_ROUGHNESS = 0.1
+GLASS_MIN_COLOUR = 0.9
 
 
-def _glass_facts(materials) -> tuple[dict[int, float], bool]:
-    """The profile's clear glass materials' IOR by index, and whether every transmissive
-    material is clear glass."""
+def _glass_facts(materials) -> tuple[dict[int, tuple[float, tuple[float, float, float]]], bool]:
+    """The profile's smooth glass materials' IOR and colour by index, and whether every
+    transmissive material is smooth glass."""
     if not isinstance(materials, list):
         return {}, False
     transmissive = [(index, m) for index, m in enumerate(materials)
                     if isinstance(m, dict) and m.get("region") == "transmissive"]
-    glass = {index: ior for index, m in transmissive if (ior := clear_glass(m)) is not None}
+    glass = {index: found for index, m in transmissive if (found := smooth_glass(m)) is not None}
     return glass, bool(transmissive) and len(glass) == len(transmissive)
 
 
-def clear_glass(material: dict) -> float | None:
-    """A profile material's IOR where it is clear glass: transmissive, with constant inputs:
-    transmission at least CLEAR_GLASS_MIN_TRANSMISSION, roughness at most
-    CLEAR_GLASS_MAX_ROUGHNESS, a base colour of at least CLEAR_GLASS_MIN_BASE_COLOUR in each
-    channel, metallic 0, alpha 1; else None. A profile written before the base colour was read
-    has no clear glass.
+def smooth_glass(material: dict) -> tuple[float, tuple[float, float, float]] | None:
+    """A profile material's IOR and colour where it is smooth glass: transmissive, with constant
+    inputs: transmission at least GLASS_MIN_TRANSMISSION, roughness at most GLASS_MAX_ROUGHNESS,
+    a base colour of at least GLASS_MIN_COLOUR in each channel, metallic 0, alpha 1; else None.
+    A profile written before the base colour was read has none.
 
     Example:
         >>> glass = {"region": "transmissive", "appearance": {"inputs": {"transmission": {"value": 1.0},
         ...          "roughness": {"value": 0.0}, "metallic": {"value": 0.0}, "ior": {"value": 1.45},
-        ...          "base_colour": {"value": [1.0, 1.0, 1.0]}}}}
-        >>> clear_glass(glass)
-        1.45
-        >>> clear_glass({"region": "transmissive", "appearance": {"inputs": {**glass["appearance"]["inputs"],
-        ...             "roughness": {"value": 0.5}}}}) is None
+        ...          "base_colour": {"value": [0.95, 1.0, 0.9]}}}}
+        >>> smooth_glass(glass)
+        (1.45, (0.95, 1.0, 0.9))
+        >>> smooth_glass({"region": "transmissive", "appearance": {"inputs": {**glass["appearance"]["inputs"],
+        ...              "roughness": {"value": 0.5}}}}) is None
         True
     """
     if not isinstance(material, dict) or material.get("region") != "transmissive":
@@ -321,10 +326,10 @@ def clear_glass(material: dict) -> float | None:
     if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value.values()):
         return None
     colour = (inputs.get("base_colour") or {}).get("value")
-    if not (isinstance(colour, list) and len(colour) == 3 and all(isinstance(c, (int, float)) for c in colour)
-            and min(colour) >= CLEAR_GLASS_MIN_BASE_COLOUR):
+    if not (isinstance(colour, list) and len(colour) == 3
+            and all(isinstance(c, (int, float)) and not isinstance(c, bool) and GLASS_MIN_COLOUR <= c for c in colour)):
         return None
-    if (value["transmission"] < CLEAR_GLASS_MIN_TRANSMISSION or value["roughness"] > CLEAR_GLASS_MAX_ROUGHNESS
+    if (value["transmission"] < GLASS_MIN_TRANSMISSION or value["roughness"] > GLASS_MAX_ROUGHNESS
             or value["metallic"] != 0 or value["alpha"] < 1 or not 1.0 < value["ior"] < 4.0):
         return None
-    return float(value["ior"])
+    return float(value["ior"]), tuple(min(float(c), 1.0) for c in colour)  # type: ignore[return-value]

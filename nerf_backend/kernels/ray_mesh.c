@@ -134,6 +134,7 @@ typedef struct {
     float offset;
     int32_t crossings;
     uint8_t *met;
+    int32_t *entry_face;
     float *t_entry, *fresnel_out, *leave, *reflected; /* leave, reflected: [R][6] origin then direction */
 } PathJob;
 
@@ -148,6 +149,7 @@ static void path(const PathJob *job, int64_t r) {
     job->met[r] = isfinite(t) ? 1 : 0;
     if (!job->met[r]) return;
     float entry[3] = {o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]};
+    job->entry_face[r] = face;
     smooth_normal(job->normals, face, u, v, n);
     float eta = 1.0f / job->ior[face], off = job->offset;
     job->t_entry[r] = t;
@@ -199,8 +201,8 @@ static void *run_paths(void *argument) {
 
 int glass_paths(const float *origins, const float *directions, int64_t rays, const float *lo, const float *hi,
                 const int32_t *child, const float *tri, const float *normals, const float *ior, float offset,
-                int32_t crossings, uint8_t *met, float *t_entry, float *fresnel_out, float *leave, float *reflected,
-                int64_t threads) {
+                int32_t crossings, uint8_t *met, int32_t *entry_face, float *t_entry, float *fresnel_out, float *leave,
+                float *reflected, int64_t threads) {
     if (threads < 1) threads = 1;
     if (threads > 64) threads = 64;
     if (rays < 4096) threads = 1;
@@ -209,7 +211,7 @@ int glass_paths(const float *origins, const float *directions, int64_t rays, con
     for (int64_t i = 0; i < threads; ++i) {
         jobs[i] = (PathJob){{origins, directions, lo, hi, tri, child, 0.0f, 0, 0, 0, rays * i / threads,
                              rays * (i + 1) / threads},
-                            normals, ior, offset, crossings, met, t_entry, fresnel_out, leave, reflected};
+                            normals, ior, offset, crossings, met, entry_face, t_entry, fresnel_out, leave, reflected};
     }
     int64_t started = 0;
     for (int64_t i = 1; i < threads; ++i) {

@@ -10,16 +10,18 @@ the mirror reflection at the entry. The field is then marched along the ray up t
 along the two rays beyond it: what it learns there is the board itself, seen straight and bent,
 one field for both (``MarchedModel.forward``).
 
-Left out, knowingly: the reflections inside the glass after the first (Cycles follows them; at
-IOR 1.45 they carry a few percent), absorption and tint (a clear material's colour is white),
-rough glass (the rule takes only smooth, fully transmissive materials), and a camera inside glass.
+The light through the glass is tinted by the glass's colour, learned from Blender's (its square
+to start with: Cycles tints the light at each crossing of the surface, in and out). Left out,
+knowingly: the reflections inside the glass after the first (Cycles follows them; at IOR 1.45
+they carry a few percent), absorption by depth (a volume), rough glass (the rule takes only
+smooth, fully transmissive materials), and a camera inside glass.
 A mesh that is not closed (a single-sided pane) lets the ray through unbent where no exit is found.
 
 Example:
     >>> import torch
     >>> glass = GlassSurfaces()
     >>> square = torch.tensor([[[-1.0, -1, 1], [1, -1, 1], [1, 1, 1]], [[-1.0, -1, 1], [1, 1, 1], [-1, 1, 1]]])
-    >>> glass.set(square, torch.tensor([0.0, 0, 1]).expand(2, 3, 3), torch.tensor([1.5, 1.5]))
+    >>> glass.set(square, torch.tensor([0.0, 0, 1]).expand(2, 3, 3), torch.tensor([1.5, 1.5]))  # colourless
     >>> paths = glass.trace(torch.tensor([[0.0, 0, 0], [5.0, 0, 0]]), torch.tensor([[0.0, 0, 1], [0, 0, 1]]))
     >>> paths.rays.tolist(), paths.t_entry.tolist(), round(float(paths.fresnel[0]), 3)
     ([0], [1.0], 0.04)
@@ -48,21 +50,23 @@ SURFACE_OFFSET = 1e-4
 @dataclass
 class GlassPaths:
     """The rays that meet glass: their indices ``rays [H]``, the distance to the glass
-    ``t_entry [H]``, the Fresnel reflectance there ``fresnel [H]``, and the rays beyond,
-    ``origins``/``directions [2H, 3]``: first the ones leaving the glass, then the reflected."""
+    ``t_entry [H]``, the Fresnel reflectance there ``fresnel [H]``, the tint of the glass they
+    pass through ``tint [H, 3]``, and the rays beyond, ``origins``/``directions [2H, 3]``: first
+    the ones leaving the glass, then the reflected."""
 
     rays: Tensor
     t_entry: Tensor
     fresnel: Tensor
+    tint: Tensor
     origins: Tensor
     directions: Tensor
 
     def colour_seen(self, beyond: Tensor) -> Tensor:
         """``[H, 3]``: what each ray sees at the glass, from the colours ``beyond [2H, 3]`` its
-        two rays beyond brought back."""
+        two rays beyond brought back: the light through the glass tinted, the reflection not."""
         count = self.rays.numel()
         share = self.fresnel[:, None].to(beyond.dtype)
-        return (1.0 - share) * beyond[:count] + share * beyond[count:]
+        return (1.0 - share) * self.tint.to(beyond.dtype) * beyond[:count] + share * beyond[count:]
 
 
 # The world's light seen through glass, as spherical harmonics of the direction (degree 2: a
@@ -93,8 +97,10 @@ class Environment(nn.Module):
 
 class GlassSurfaces(nn.Module):
     """Buffers: the glass's triangles ``corners [T, 3, 3]``, their smooth ``normals`` at each
-    corner ``[T, 3, 3]`` and each triangle's ``ior [T]``; and the ``environment`` the rays beyond
-    it see where they leave the scene."""
+    corner ``[T, 3, 3]``, each triangle's ``ior [T]`` and ``glass [T]`` (which of the scene's
+    glass materials it is); a parameter, each glass material's tint, learned from Blender's
+    (``tint_logits [M, 3]``); and the ``environment`` the rays beyond it see where they leave
+    the scene."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -102,12 +108,27 @@ class GlassSurfaces(nn.Module):
         self.register_buffer("corners", torch.zeros((0, 3, 3)))
         self.register_buffer("normals", torch.zeros((0, 3, 3)))
         self.register_buffer("ior", torch.zeros(0))
+        self.register_buffer("glass", torch.zeros(0, dtype=torch.long))
+        self.tint_logits = nn.Parameter(torch.zeros((0, 3)))
 
-    def set(self, corners: Tensor, normals: Tensor, ior: Tensor) -> None:
+    def set(self, corners: Tensor, normals: Tensor, ior: Tensor, glass: Tensor | None = None,
+            tints: Tensor | None = None) -> None:
+        """The glass's triangles, corner normals and IOR; ``glass [T]``, each triangle's glass
+        material, and ``tints [M, 3]``, each material's tint as Blender gives it (by default one
+        colourless glass). The light through the glass starts tinted by the tint squared (Cycles
+        tints it at each crossing of the surface, in and out) and learns its own."""
         device = self.corners.device
         self.corners = corners.to(device, torch.float32).contiguous()
         self.normals = normals.to(device, torch.float32).contiguous()
         self.ior = ior.to(device, torch.float32).contiguous()
+        self.glass = (torch.zeros(corners.shape[0], dtype=torch.long) if glass is None else glass).to(device)
+        tints = torch.ones((1, 3)) if tints is None else tints.float()
+        through = (tints * tints).clamp(1e-3, 1.0 - 1e-3)
+        self.tint_logits = nn.Parameter(torch.logit(through).to(device))
+
+    def tint(self, face: Tensor) -> Tensor:
+        """``[H, 3]`` the tint of the glass of each triangle ``face``."""
+        return torch.sigmoid(self.tint_logits).index_select(0, self.glass.index_select(0, face))
 
     def _hits(self, origins: Tensor, directions: Tensor, t_min: float) -> tuple[Tensor, Tensor, Tensor]:
         """``nearest_triangle_hits`` against the glass: on the CPU through a bounding volume
@@ -150,10 +171,13 @@ class GlassSurfaces(nn.Module):
 
     def match_state(self, state: dict[str, Tensor], prefix: str) -> None:
         """Take the buffers' shapes a checkpoint was saved with (its values are loaded next)."""
-        for name in ("corners", "normals", "ior"):
+        for name in ("corners", "normals", "ior", "glass"):
             saved = state.get(prefix + name)
             if saved is not None and saved.shape != getattr(self, name).shape:
                 setattr(self, name, torch.zeros_like(saved, device=self.corners.device))
+        saved = state.get(prefix + "tint_logits")
+        if saved is not None and saved.shape != self.tint_logits.shape:
+            self.tint_logits = nn.Parameter(torch.zeros_like(saved, device=self.corners.device))
 
     @property
     def empty(self) -> bool:
@@ -175,20 +199,22 @@ class GlassSurfaces(nn.Module):
         library, lo, hi, child, tri, order, normals, ior = walk
         count = origins.shape[0]
         o, d = origins.float().contiguous(), directions.float().contiguous()
-        met = torch.empty(count, dtype=torch.uint8)
+        met, entry_face = torch.empty(count, dtype=torch.uint8), torch.empty(count, dtype=torch.int32)
         t_entry, fresnel = torch.empty(count), torch.empty(count)
         leave, reflected = torch.empty((count, 6)), torch.empty((count, 6))
         library.glass_paths(*(ctypes.c_void_p(x.data_ptr()) for x in (o, d)), ctypes.c_int64(count),
                             *(ctypes.c_void_p(x.data_ptr()) for x in (lo, hi, child, tri, normals, ior)),
                             ctypes.c_float(offset), ctypes.c_int32(INTERNAL_CROSSINGS),
-                            *(ctypes.c_void_p(x.data_ptr()) for x in (met, t_entry, fresnel, leave, reflected)),
+                            *(ctypes.c_void_p(x.data_ptr()) for x in (met, entry_face, t_entry, fresnel, leave,
+                                                                        reflected)),
                             ctypes.c_int64(torch.get_num_threads()))
         rays = met.nonzero().squeeze(1)
         if rays.numel() == 0:
             return None
         leave, reflected = leave.index_select(0, rays), reflected.index_select(0, rays)
+        face = order.index_select(0, entry_face.index_select(0, rays).long())
         return GlassPaths(rays=rays, t_entry=t_entry.index_select(0, rays), fresnel=fresnel.index_select(0, rays),
-                          origins=torch.cat([leave[:, :3], reflected[:, :3]]).to(origins.dtype),
+                          tint=self.tint(face), origins=torch.cat([leave[:, :3], reflected[:, :3]]).to(origins.dtype),
                           directions=torch.cat([leave[:, 3:], reflected[:, 3:]]).to(directions.dtype))
 
     def _torch_trace(self, origins: Tensor, directions: Tensor, low: Tensor, high: Tensor,
@@ -211,7 +237,7 @@ class GlassSurfaces(nn.Module):
         reflected = reflect(d, normal)
         inside, _ = refract(d, normal, 1.0 / ior)
         leave_at, leave_along = self._leave(entry, inside, d, offset)
-        return GlassPaths(rays=candidates.index_select(0, met), t_entry=t, fresnel=fresnel,
+        return GlassPaths(rays=candidates.index_select(0, met), t_entry=t, fresnel=fresnel, tint=self.tint(face),
                           origins=torch.cat([leave_at, entry + offset * reflected]).to(origins.dtype),
                           directions=torch.cat([leave_along, reflected]).to(directions.dtype))
 

@@ -87,7 +87,7 @@ class MarchedModel(Model):
         self.glass = GlassSurfaces() if march.refraction else None
         if self.glass is not None and prior is not None and (surfaces := prior.glass_surfaces()) is not None:
             self.glass.set(*surfaces)
-            self.prior = prior.without_clear_glass()  # the field holds nothing at the glass
+            self.prior = prior.without_glass()  # the field holds nothing at the glass
         self._fit_tried = False
         self.box_fitted = False  # the field narrowed to a box inside the one it was built over
         self._note: str | None = None

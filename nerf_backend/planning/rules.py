@@ -80,7 +80,7 @@ REFLECTION_FREQUENCIES = 6
 # Rays bent through clear glass (refraction): what the glass shows is then the field itself, seen
 # through it as Cycles sees it, not a colour the network must learn to change with the view.
 REFRACTION_REASON = (
-    "the scene's clear glass ({triangles} triangles, IOR {ior}) bends the rays that meet it, as Cycles does, and "
+    "the scene's glass ({triangles} triangles, IOR {ior}) bends the rays that meet it, as Cycles does, and "
     "the field is marched beyond it: measured at 100×100 after 120 s on 2 CPU cores, glass_over_checker (a glass "
     "ball on a checkerboard) scored 33.06 dB against 27.23 with straight rays, glass_and_gloss (a clear ball bent, "
     "a green cube not) 32.00 against 31.19 (docs/benchmarks.md, \"Rays bent through glass\")")
@@ -353,9 +353,9 @@ def auto_region_appearance(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]
 
 
 def auto_refraction(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
-    """Rays bent through the scene's clear glass (``refraction``, model_components/glass.py),
-    where Blender says what the glass is (smooth, colourless, fully transmissive materials:
-    ``data.occupancy_prior.clear_glass``) and where it is (the dataset's true surface, each
+    """Rays bent through the scene's smooth glass (``refraction``, model_components/glass.py),
+    where Blender says what the glass is (smooth, fully transmissive, nearly colourless materials:
+    ``data.occupancy_prior.smooth_glass``) and where it is (the dataset's true surface, each
     triangle with its material).
 
     Example:
@@ -373,8 +373,8 @@ def auto_refraction(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
     surfaces = prior.glass_surfaces()
     if surfaces is None:
         yield Proposal("refraction", "refraction", False,
-                       "no clear glass in the scene (a transmissive material smooth, colourless and fully "
-                       "transmissive): rays go straight")
+                       "no smooth glass in the scene (a transmissive material smooth, fully transmissive and nearly "
+                       "colourless): rays go straight")
         return
     iors = sorted(set(surfaces[2].tolist()))
     yield Proposal("refraction", "refraction", True, REFRACTION_REASON.format(
