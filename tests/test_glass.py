@@ -250,7 +250,7 @@ def test_a_model_marches_the_field_beyond_the_glass_with_gradients_reaching_it()
         _, beyond_far, _ = ray_box_intersection(paths.origins, paths.directions, model.field.box_min,
                                                 model.field.box_max)
         beyond = model._march_rays(paths.origins, paths.directions, torch.zeros_like(beyond_far), beyond_far,
-                                   model.glass.environment(paths.directions), None)[0]
+                                   model.environment(paths.directions), None)[0]
         up_to = model._march_rays(origins[met], directions[met], near[met], torch.minimum(far[met], paths.t_entry),
                                   0.0, None)[0]
         expected = up_to.rgb + (1.0 - up_to.opacity)[:, None] * paths.colour_seen(beyond.rgb)
@@ -263,9 +263,9 @@ def test_a_model_marches_the_field_beyond_the_glass_with_gradients_reaching_it()
     trained.rgb.sum().backward()
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.field.encoding_parameters())
     # The world seen through the glass, and the glass's tint, are learned with the networks.
-    assert model.glass.environment.harmonics.grad.abs().sum() > 0 and model.glass.tint_logits.grad.abs().sum() > 0
+    assert model.environment.harmonics.grad.abs().sum() > 0 and model.glass.tint_logits.grad.abs().sum() > 0
     networks = next(group for group in model.parameter_groups() if group.name == "networks")
-    assert any(p is model.glass.environment.harmonics for p in networks.parameters)
+    assert any(p is model.environment.harmonics for p in networks.parameters)
     assert any(p is model.glass.tint_logits for p in networks.parameters)
 
 

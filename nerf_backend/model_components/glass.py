@@ -37,7 +37,6 @@ from torch import Tensor, nn
 
 from ..core.cameras import ray_box_intersection
 from ..core.refraction import build_bvh, fresnel_reflectance, nearest_triangle_hits, reflect, refract
-from ..field_components.spherical_harmonics import sh_basis, sh_count
 from ..kernels.build import load_kernel
 
 # Crossings of the glass's surface from inside, before a ray still trapped by total internal
@@ -69,42 +68,15 @@ class GlassPaths:
         return (1.0 - share) * self.tint.to(beyond.dtype) * beyond[:count] + share * beyond[count:]
 
 
-# The world's light seen through glass, as spherical harmonics of the direction (degree 2: a
-# uniform world, or one brighter above than below).
-ENVIRONMENT_DEGREE = 2
-
-
-class Environment(nn.Module):
-    """What a ray bent by the glass (or reflected by it) sees where it leaves the scene: the
-    world's light, learned, a colour a direction (``sigmoid`` of spherical harmonics). The
-    camera's own rays see the images' background instead: with a transparent film Cycles leaves
-    the world out of the pixels it shows directly, but not of those it shows through glass
-    (glass_over_checker's ball is opaque, the world's colour, where the rays through it go up).
-
-    Example:
-        >>> environment = Environment()
-        >>> environment(torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])).tolist()  # grey until trained
-        [[0.5, 0.5, 0.5], [0.5, 0.5, 0.5]]
-    """
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.harmonics = nn.Parameter(torch.zeros((sh_count(ENVIRONMENT_DEGREE), 3)))
-
-    def forward(self, directions: Tensor) -> Tensor:
-        return torch.sigmoid(sh_basis(directions.to(self.harmonics.dtype), ENVIRONMENT_DEGREE) @ self.harmonics)
-
-
 class GlassSurfaces(nn.Module):
     """Buffers: the glass's triangles ``corners [T, 3, 3]``, their smooth ``normals`` at each
     corner ``[T, 3, 3]``, each triangle's ``ior [T]`` and ``glass [T]`` (which of the scene's
     glass materials it is); a parameter, each glass material's tint, learned from Blender's
-    (``tint_logits [M, 3]``); and the ``environment`` the rays beyond it see where they leave
-    the scene."""
+    (``tint_logits [M, 3]``). What the rays beyond it see where they leave the scene is the
+    model's (``field_components.environment``)."""
 
     def __init__(self) -> None:
         super().__init__()
-        self.environment = Environment()
         self.register_buffer("corners", torch.zeros((0, 3, 3)))
         self.register_buffer("normals", torch.zeros((0, 3, 3)))
         self.register_buffer("ior", torch.zeros(0))

@@ -18,6 +18,7 @@ from ..core.devices import colour_network_dtype
 from ..core.scene_bounds import SceneBounds
 from ..core.tensor_keys import values_key
 from ..data.occupancy_prior import OccupancyPrior
+from ..field_components.environment import Environment
 from ..field_components.grid_encodings import Vertices
 from ..fields.base import MarchableField
 from ..model_components.compiled_march import RENDER_CHUNK as COMPILED_RENDER_CHUNK
@@ -85,6 +86,7 @@ class MarchedModel(Model):
         self.march = march
         self.prior = prior
         self.glass = GlassSurfaces() if march.refraction else None
+        self.environment = Environment() if march.refraction else None  # the world seen through the glass
         if self.glass is not None and prior is not None and (surfaces := prior.glass_surfaces()) is not None:
             self.glass.set(*surfaces)
             self.prior = prior.without_glass()  # the field holds nothing at the glass
@@ -378,7 +380,7 @@ class MarchedModel(Model):
         # light: ``Environment``); what shows at the glass is then laid under each ray's samples.
         count, met = origins.shape[0], paths.rays
         backgrounds = torch.as_tensor(background, dtype=origins.dtype, device=origins.device).expand(count, 3)
-        beyond_background = self.glass.environment(paths.directions).to(origins.dtype)
+        beyond_background = self.environment(paths.directions).to(origins.dtype)
         backgrounds = backgrounds.index_fill(0, met, 0.0)
         box_min, box_max = self.field.box_min.to(origins.dtype), self.field.box_max.to(origins.dtype)
         _, beyond_far, _ = ray_box_intersection(paths.origins, paths.directions, box_min, box_max)
