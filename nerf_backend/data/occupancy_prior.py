@@ -177,10 +177,20 @@ class OccupancyPrior:
         the profile's materials; -1 where it is not glass); None without glass or geometry."""
         if not self.glass_materials or self.geometry is None:
             return None
-        vertices, faces = read_ply(self.geometry)
+        # The plan, the model and its emptied cells each ask: the file is read once per question.
+        key = (self.geometry, tuple(sorted(self.glass_materials.items())), self.all_transmissive_glass)
+        cached = getattr(self, "_glass_cache", None)
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        found = self._read_glass_faces()
+        self._glass_cache = (key, found)
+        return found
+
+    def _read_glass_faces(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        vertices, faces = read_ply(self.geometry)  # type: ignore[arg-type]
         if not len(faces):
             return None
-        materials = read_face_materials(self.geometry)
+        materials = read_face_materials(self.geometry)  # type: ignore[arg-type]
         if materials is not None:
             material = np.where(np.isin(materials, list(self.glass_materials)), materials, -1)
         else:

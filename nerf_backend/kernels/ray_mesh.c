@@ -199,50 +199,50 @@ static void *run_paths(void *argument) {
     return 0;
 }
 
+/* Threads to share `rays` rays: one below a few thousand (a thread's start costs more). */
+static int64_t thread_count(int64_t threads, int64_t rays) {
+    if (rays < 4096 || threads < 1) return 1;
+    return threads > 64 ? 64 : threads;
+}
+
+/* `work` over jobs[0 .. threads) (each `size` bytes), jobs 1.. on threads of their own; a job
+ * whose thread could not start runs here. */
+static void run_all(void *(*work)(void *), char *jobs, size_t size, int64_t threads) {
+    pthread_t handles[64];
+    int64_t started = 0;
+    for (int64_t i = 1; i < threads; ++i) {
+        if (pthread_create(&handles[i], 0, work, jobs + i * size) != 0) break;
+        started = i;
+    }
+    work(jobs);
+    for (int64_t i = 1; i <= started; ++i) pthread_join(handles[i], 0);
+    for (int64_t i = started + 1; i < threads; ++i) work(jobs + i * size);
+}
+
 int glass_paths(const float *origins, const float *directions, int64_t rays, const float *lo, const float *hi,
                 const int32_t *child, const float *tri, const float *normals, const float *ior, float offset,
                 int32_t crossings, uint8_t *met, int32_t *entry_face, float *t_entry, float *fresnel_out, float *leave,
                 float *reflected, int64_t threads) {
-    if (threads < 1) threads = 1;
-    if (threads > 64) threads = 64;
-    if (rays < 4096) threads = 1;
+    threads = thread_count(threads, rays);
     PathJob jobs[64];
-    pthread_t handles[64];
     for (int64_t i = 0; i < threads; ++i) {
         jobs[i] = (PathJob){{origins, directions, lo, hi, tri, child, 0.0f, 0, 0, 0, rays * i / threads,
                              rays * (i + 1) / threads},
                             normals, ior, offset, crossings, met, entry_face, t_entry, fresnel_out, leave, reflected};
     }
-    int64_t started = 0;
-    for (int64_t i = 1; i < threads; ++i) {
-        if (pthread_create(&handles[i], 0, run_paths, &jobs[i]) != 0) break;
-        started = i;
-    }
-    run_paths(&jobs[0]);
-    for (int64_t i = 1; i <= started; ++i) pthread_join(handles[i], 0);
-    for (int64_t i = started + 1; i < threads; ++i) run_paths(&jobs[i]);
+    run_all(run_paths, (char *)jobs, sizeof(PathJob), threads);
     return 0;
 }
 
 int ray_mesh_nearest(const float *origins, const float *directions, int64_t rays, float t_min, const float *lo,
                      const float *hi, const int32_t *child, const float *tri, float *t_out, int32_t *face_out,
                      float *uv_out, int64_t threads) {
-    if (threads < 1) threads = 1;
-    if (threads > 64) threads = 64;
-    if (rays < 4096) threads = 1; /* a thread's start costs more than a few thousand rays */
+    threads = thread_count(threads, rays);
     Job jobs[64];
-    pthread_t handles[64];
     for (int64_t i = 0; i < threads; ++i) {
         jobs[i] = (Job){origins, directions, lo, hi, tri, child, t_min, t_out, uv_out, face_out,
                         rays * i / threads, rays * (i + 1) / threads};
     }
-    int64_t started = 0;
-    for (int64_t i = 1; i < threads; ++i) {
-        if (pthread_create(&handles[i], 0, run, &jobs[i]) != 0) break;
-        started = i;
-    }
-    run(&jobs[0]);
-    for (int64_t i = 1; i <= started; ++i) pthread_join(handles[i], 0);
-    for (int64_t i = started + 1; i < threads; ++i) run(&jobs[i]); /* threads that could not start */
+    run_all(run, (char *)jobs, sizeof(Job), threads);
     return 0;
 }
