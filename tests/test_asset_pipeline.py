@@ -8,6 +8,7 @@ report."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 from conftest import run_python
@@ -33,22 +34,50 @@ def a_blend_dataset(shared_scenes, tmp_path_factory):
     return out
 
 
-def test_a_real_scene_goes_from_training_to_a_scored_asset_in_blenders_renders(a_blend_dataset, tmp_path):
-    run = tmp_path / "run"
-    run_python("-m", "nerf_backend", "train", str(a_blend_dataset), "--preset", "surface", "--iters", str(TRAIN_STEPS),
-               "--out", str(run), "--no-progress")
+def _asset_scored_in_blenders_renders(run, dataset, triangles: int, texture_size: int, test_views: int):
+    """eval, export, the asset rendered by Cycles and EEVEE from the test cameras, each scored
+    and the report written: the NeRF's PSNR and each engine's."""
     run_python("-m", "nerf_backend", "eval", str(run), "--no-progress")
     asset = run / ASSET_DIR / ASSET_NAME
-    run_python("-m", "nerf_backend", "export", str(run), "--out", str(asset), "--triangles", "8000",
-               "--texture-size", "512", "--no-progress")
+    run_python("-m", "nerf_backend", "export", str(run), "--out", str(asset), "--triangles", str(triangles),
+               "--texture-size", str(texture_size), "--no-progress")
     scores = {}
     for engine in ("cycles", "eevee"):
         renders = run / ASSET_DIR / ASSET_RENDERS_DIR / engine
-        _render_asset(asset, a_blend_dataset, renders, engine)
-        assert sorted(p.name for p in renders.glob("r_*.png")) == ["r_0.png", "r_1.png", "r_2.png"]
-        run_python("-m", "nerf_backend", "eval", "--dataset", str(a_blend_dataset), "--renders", str(renders))
+        _render_asset(asset, dataset, renders, engine)
+        assert sorted(p.name for p in renders.glob("r_*.png")) == [f"r_{i}.png" for i in range(test_views)]
+        run_python("-m", "nerf_backend", "eval", "--dataset", str(dataset), "--renders", str(renders))
         scores[engine] = json.loads((renders / METRICS_NAME).read_text())["psnr"]
-    nerf = json.loads((run / METRICS_NAME).read_text())["psnr"]
+    run_python("-m", "nerf_backend", "report", str(run))
+    page = (run / REPORT_DIR / REPORT_INDEX).read_text()
+    assert "The baked asset in Blender&#x27;s renders" in page or "The baked asset in Blender's renders" in page
+    assert f"{scores['cycles']:.2f}" in page and "the asset, CYCLES" in page and "the asset, BLENDER_EEVEE" in page
+    return json.loads((run / METRICS_NAME).read_text())["psnr"], scores
+
+
+def test_the_demos_surface_run_goes_to_a_scored_asset_in_blenders_renders(trained_surface_run, tiny_demo_dataset,
+                                                                          tmp_path):
+    """The default run's twin of the real scene's test below: the same commands on the shared
+    surface run of the tiny demo (40×40, 4 test views)."""
+    run = tmp_path / "run"
+    shutil.copytree(trained_surface_run, run)
+    nerf, scores = _asset_scored_in_blenders_renders(run, tiny_demo_dataset, 2000, 128, 4)
+    print(f"the tiny demo, surface 400 steps: NeRF {nerf:.2f} dB, "
+          f"asset by Cycles {scores['cycles']:.2f} dB, by EEVEE {scores['eevee']:.2f} dB")
+    # Measured: NeRF 30.34 dB, the asset (2000 triangles, 128² texture) 30.80 by Cycles and
+    # 30.30 by EEVEE. The same relations as the real scene's, with the demo's own floor.
+    assert scores["cycles"] > nerf - 2.0 and scores["cycles"] > 28.0
+    assert abs(scores["eevee"] - scores["cycles"]) < 1.0
+
+
+@pytest.mark.slow
+def test_a_real_scene_goes_from_training_to_a_scored_asset_in_blenders_renders(a_blend_dataset, tmp_path):
+    """Slow (48 s of 2 cores' time under the default run's load): the claim on a real scene; the
+    twin above runs the same commands in the default run."""
+    run = tmp_path / "run"
+    run_python("-m", "nerf_backend", "train", str(a_blend_dataset), "--preset", "surface", "--iters", str(TRAIN_STEPS),
+               "--out", str(run), "--no-progress")
+    nerf, scores = _asset_scored_in_blenders_renders(run, a_blend_dataset, 8000, 512, 3)
     print(f"A.blend at 48×48, surface {TRAIN_STEPS} steps: NeRF {nerf:.2f} dB, "
           f"asset by Cycles {scores['cycles']:.2f} dB, by EEVEE {scores['eevee']:.2f} dB")
     # Measured (band, NeuS, the bake rendering each texel as the cameras saw it): NeRF 34.86
@@ -56,10 +85,6 @@ def test_a_real_scene_goes_from_training_to_a_scored_asset_in_blenders_renders(a
     # from the field's colour at the surface point instead, it was 31.80 (Cycles): 3.1 dB under.
     assert scores["cycles"] > nerf - 2.0 and scores["cycles"] > 30.0
     assert abs(scores["eevee"] - scores["cycles"]) < 1.0
-    run_python("-m", "nerf_backend", "report", str(run))
-    page = (run / REPORT_DIR / REPORT_INDEX).read_text()
-    assert "The baked asset in Blender&#x27;s renders" in page or "The baked asset in Blender's renders" in page
-    assert f"{scores['cycles']:.2f}" in page and "the asset, CYCLES" in page and "the asset, BLENDER_EEVEE" in page
 
 
 def test_rendering_an_asset_refuses_bad_input_in_one_line(tiny_demo_dataset, tmp_path):

@@ -144,7 +144,7 @@ def test_pip_installs_torch_from_the_builds_index_then_the_rest():
     requirements = REPO_ROOT / "nerf_backend" / "requirements.txt"
     assert torch_requirement(requirements) == "torch>=2.4"
     build = choose_build(PlatformFacts("Windows", "AMD64", "RTX 4070", "560.94", (12, 6)))
-    pip = ["py", "-m", "pip", "install", "--progress-bar", "off"]
+    pip = ["py", "-m", "pip", "install", "--progress-bar", "off", "--no-compile"]
     no_deps = pip + ["--no-deps", "-r", str(requirements.with_name("requirements-no-deps.txt"))]
     assert install_commands("py", build, requirements) == [
         pip + ["--index-url", "https://download.pytorch.org/whl/cu126", "torch>=2.4"],
