@@ -102,7 +102,7 @@ def test_dataset_job_renders_in_a_background_blender(tmp_path):
 
 def test_animation_job_chains_its_stages_cancels_and_resumes(trained_run, tmp_path):
     dataset = Path(json.loads((trained_run / "config.json").read_text())["dataset"])
-    path, count, pairs = camera_path_through_test_views(dataset, tmp_path / "path", repeats=12, copy_images=False)
+    path, count, pairs = camera_path_through_test_views(dataset, tmp_path / "path", repeats=4, copy_images=False)
     # The first stage copies the views' images in as its 'Cycles' frames, as Blender would render them.
     copy_stage = [sys.executable, "-c", "import shutil, sys, json; [shutil.copy(a, b) for a, b in json.loads(sys.argv[1])]",
                   json.dumps([[str(a), str(b)] for a, b in pairs])]
@@ -120,7 +120,8 @@ def test_animation_job_chains_its_stages_cancels_and_resumes(trained_run, tmp_pa
     cancelled = _wait_for(job, lambda s: s.state != "running")
     assert cancelled.state == "cancelled", cancelled
     kept = {p.name: p.stat().st_mtime_ns for p in (out / "frames").glob("*.png")}
-    assert 3 <= len(kept) < count
+    assert 3 <= len(kept) < count, (len(kept), count)
+    print(f"cancelled with {len(kept)} of {count} frames")
 
     job = AnimationJob(out)  # a reopened .blend: the job found again from its folder
     assert job.poll().state == "cancelled"
