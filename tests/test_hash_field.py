@@ -1,6 +1,7 @@
-"""The hash-grid field (Instant-NGP's encoding in plain PyTorch): the encoding against a
-reference written point by point from the paper, the field at numerical extremes, and the
-model contract it meets with no change to the marcher, trainer or renderer."""
+"""The hash-grid field (Instant-NGP's encoding, in PyTorch and compiled for the CPU): the
+encoding against a reference written point by point from the paper, the compiled read and its
+gradient against PyTorch's, the field at numerical extremes, and the model contract it meets
+with no change to the marcher, trainer or renderer."""
 
 from __future__ import annotations
 
@@ -16,7 +17,8 @@ from nerf_backend.configs.presets import PRESETS
 from nerf_backend.core.cameras import ray_box_intersection
 from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.data.dataset import load_split
-from nerf_backend.field_components.hash_encoding import HashEncoding, level_resolutions
+from nerf_backend.field_components.hash_encoding import HashEncoding, hash_encoding_library, level_resolutions
+from nerf_backend.kernels.build import TARGET_VARIABLE
 from nerf_backend.fields.hash_field import HashField, HashFieldConfig
 from nerf_backend.metrics.image_metrics import psnr
 from nerf_backend.models.registry import HashModel
@@ -66,6 +68,52 @@ def test_encoding_matches_the_papers_formula_on_dense_and_hashed_levels():
                         torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [1.0, 0.0, 0.5]], dtype=torch.float64)])
     expected = torch.tensor([_reference_encoding(encoding, p.tolist()) for p in points], dtype=torch.float64)
     assert torch.allclose(encoding(points.float()).double(), expected, atol=1e-5)
+
+
+def _x86_64_v3_runs_here() -> bool:
+    import platform
+    from pathlib import Path
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return False
+    flags = set(" ".join(line for line in Path("/proc/cpuinfo").read_text().splitlines()
+                         if line.startswith("flags")).split())
+    return {"avx2", "fma", "bmi2", "f16c", "movbe"} <= flags
+
+
+@pytest.mark.parametrize("target", ["native", pytest.param("x86-64-v3", marks=pytest.mark.skipif(
+    not _x86_64_v3_runs_here(), reason="this CPU cannot run code for x86-64-v3"))])
+@pytest.mark.parametrize("features", [2, 4])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_compiled_read_and_its_gradient_equal_pytorchs(target, features, threads, monkeypatch):
+    """kernels/hash_encoding.c against the PyTorch path it replaces on the CPU: the same
+    features and table gradients on dense and hashed levels, for points inside, on and beyond
+    the unit cube (clamped), on one thread and two (backward splits the levels), built for
+    this CPU and for the AVX2 machines'."""
+    if target != "native":
+        monkeypatch.setenv(TARGET_VARIABLE, target)
+    if hash_encoding_library() is None:
+        pytest.skip("no C compiler here: the encoding reads through PyTorch")
+    torch.manual_seed(features)
+    encoding = HashEncoding(levels=7, features=features, log2_table_size=11, base_resolution=3, max_resolution=90)
+    assert 0 < encoding.dense_levels < 7
+    with torch.no_grad():
+        encoding.tables.normal_()
+    points = torch.cat([torch.rand(3000, 3), torch.rand(50, 3) * 3 - 1,
+                        torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [1.0, 0.0, 0.5]])])
+    weights = torch.randn(points.shape[0], encoding.out_dims)
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        compiled = encoding(points)
+        (compiled * weights).sum().backward()
+        compiled_grad, encoding.tables.grad = encoding.tables.grad, None
+        reference = encoding.torch_forward(points)
+        (reference * weights).sum().backward()
+    finally:
+        torch.set_num_threads(previous)
+    assert compiled.grad_fn is not None and type(compiled.grad_fn).__name__ != type(reference.grad_fn).__name__
+    assert float((compiled - reference).detach().abs().max()) <= 1e-5
+    assert float((compiled_grad - encoding.tables.grad).abs().max()) <= 1e-4
 
 
 def test_encoding_is_continuous_across_cell_faces():

@@ -6,16 +6,40 @@ steps. Each level stores ``features`` numbers per vertex in a table of ``2**log2
 rows: coarse levels that fit are indexed directly, finer ones through the paper's spatial
 hash (``x·1 ⊕ y·2654435761 ⊕ z·805459861`` mod table size), collisions resolved by training.
 A point's encoding is the trilinear interpolation of its cell's 8 corners at every level.
+
+On the CPU, in float32, where a C compiler is found and the points need no gradient (training
+and rendering), the encoding and its gradient run in ``kernels/hash_encoding.c``: PyTorch's path
+forms each corner's index, weight and row as a tensor of [points, levels, 8], a pass through
+memory each. Elsewhere PyTorch computes the same (tests/test_hash_field.py holds the two and
+their gradients together).
 """
 
 from __future__ import annotations
 
+import ctypes
 import math
 
 import torch
 from torch import Tensor, nn
 
+from ..kernels.build import kernel_or_note
+
 _PRIMES = (1, 2654435761, 805459861)
+MAX_FEATURES = 8  # hash_encoding.c's
+
+
+class _Tables(ctypes.Structure):
+    _fields_ = [("tables", ctypes.c_void_p), ("resolutions", ctypes.c_void_p), ("levels", ctypes.c_int64),
+                ("table_size", ctypes.c_int64), ("features", ctypes.c_int64), ("dense_levels", ctypes.c_int64)]
+
+
+def hash_encoding_library() -> ctypes.CDLL | None:
+    """The built kernel, or None (why is said once on stderr)."""
+    library, _ = kernel_or_note("hash_encoding", "reading the hash encoding through PyTorch")
+    if library is not None:
+        library.hash_forward.restype = ctypes.c_int
+        library.hash_backward.restype = ctypes.c_int
+    return library
 
 
 def level_resolutions(levels: int, base_resolution: int, max_resolution: int) -> list[int]:
@@ -77,6 +101,24 @@ class HashEncoding(nn.Module):
         return rows
 
     def forward(self, unit_points: Tensor) -> Tensor:
+        if self._compiled_applies(unit_points):
+            return _CompiledRead.apply(unit_points.contiguous(), self, self.tables)
+        return self.torch_forward(unit_points)
+
+    def _compiled_applies(self, unit_points: Tensor) -> bool:
+        return (unit_points.device.type == "cpu" and unit_points.dtype == torch.float32
+                and not unit_points.requires_grad and self.tables.dtype == torch.float32
+                and self.tables.device.type == "cpu" and self.features <= MAX_FEATURES
+                and hash_encoding_library() is not None)
+
+    def kernel_view(self) -> _Tables:
+        """The tables as ``hash_encoding.c`` reads them (kept alive by the caller's ``self``)."""
+        self._resolutions_c = self.resolutions.float().contiguous()
+        return _Tables(self.tables.data_ptr(), self._resolutions_c.data_ptr(), self.levels, self.table_size,
+                       self.features, self.dense_levels)
+
+    def torch_forward(self, unit_points: Tensor) -> Tensor:
+        """The encoding through PyTorch's tensors (any device; the compiled path's reference)."""
         points = unit_points.float().clamp(0.0, 1.0)
         resolutions = self.resolutions[None, :, None]
         scaled = points[:, None, :] * resolutions  # [P, L, 3]
@@ -92,3 +134,37 @@ class HashEncoding(nn.Module):
         values = self.tables.index_select(0, rows.reshape(-1)).view(-1, 8, self.features)
         encoded = torch.bmm(weights.reshape(-1, 1, 8), values)  # trilinear interpolation at every level
         return encoded.reshape(points.shape[0], self.out_dims)
+
+
+def _check(status: int) -> None:
+    if status != 0:  # _compiled_applies keeps every call within the kernel's limits
+        raise RuntimeError(f"hash_encoding.c refused the call (status {status})")
+
+
+class _CompiledRead(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, unit_points: Tensor, encoding: HashEncoding, tables: Tensor) -> Tensor:
+        count = unit_points.shape[0]
+        encoded = tables.new_empty((count, encoding.out_dims))
+        if count:
+            view = encoding.kernel_view()
+            _check(hash_encoding_library().hash_forward(
+                ctypes.byref(view), ctypes.c_void_p(unit_points.data_ptr()), ctypes.c_int64(count),
+                ctypes.c_void_p(encoded.data_ptr()), ctypes.c_int64(torch.get_num_threads())))
+        ctx.encoding = encoding
+        ctx.save_for_backward(unit_points)
+        return encoded
+
+    @staticmethod
+    def backward(ctx, grad_encoded: Tensor):
+        (unit_points,) = ctx.saved_tensors
+        encoding = ctx.encoding
+        grad_tables = torch.zeros_like(encoding.tables)
+        if unit_points.shape[0]:
+            grad = grad_encoded.float().contiguous()
+            view = encoding.kernel_view()
+            _check(hash_encoding_library().hash_backward(
+                ctypes.byref(view), ctypes.c_void_p(unit_points.data_ptr()), ctypes.c_int64(unit_points.shape[0]),
+                ctypes.c_void_p(grad.data_ptr()), ctypes.c_void_p(grad_tables.data_ptr()),
+                ctypes.c_int64(torch.get_num_threads())))
+        return None, None, grad_tables
