@@ -48,12 +48,13 @@ TINY_DEMO_ARGS = ["--demo", "--resolution", "40", "--train-views", "30", "--val-
 # 32 s each). `make test` runs with pytest-xdist's `--dist loadfile --no-loadscope-reorder`: it
 # hands each worker the next whole file in the collection's order. By default it orders files by
 # their count of tests, which put the asset pipeline's one long test last, alone on one worker
-# while the other had finished. The add-on session and the asset pipeline go first, as they need
-# none of the shared trained runs that the next files wait for.
-LONGEST_FILES = ("test_addon.py", "test_asset_pipeline.py", "test_addon_jobs.py", "test_training_extremes.py",
-                 "test_bench.py", "test_collapse_guard.py", "test_view_server.py", "test_bad_input.py",
+# while the other had finished. The add-on session goes first, as it needs none of the shared
+# trained runs, while the other worker's add-on jobs make the preview and surface runs that the
+# next files wait for (the asset pipeline's default test uses the surface run since session 60).
+LONGEST_FILES = ("test_addon.py", "test_addon_jobs.py", "test_training_extremes.py", "test_bench.py",
+                 "test_asset_pipeline.py", "test_collapse_guard.py", "test_view_server.py", "test_bad_input.py",
                  "test_bench_suite.py", "test_datasets_gen_runs.py", "test_report.py", "test_training.py",
-                 "test_budget_schedule.py", "test_first_run.py", "test_datasets_gen_scenes.py", "test_hash_field.py")
+                 "test_budget_schedule.py", "test_first_run.py", "test_datasets_gen_scenes.py")
 
 
 def pytest_collection_modifyitems(config, items):
