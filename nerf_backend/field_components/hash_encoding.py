@@ -107,14 +107,13 @@ class HashEncoding(nn.Module):
 
     def _compiled_applies(self, unit_points: Tensor) -> bool:
         return (unit_points.device.type == "cpu" and unit_points.dtype == torch.float32
-                and not unit_points.requires_grad and self.tables.dtype == torch.float32
+                and not unit_points.requires_grad and self.tables.dtype == self.resolutions.dtype == torch.float32
                 and self.tables.device.type == "cpu" and self.features <= MAX_FEATURES
                 and hash_encoding_library() is not None)
 
     def kernel_view(self) -> _Tables:
-        """The tables as ``hash_encoding.c`` reads them (kept alive by the caller's ``self``)."""
-        self._resolutions_c = self.resolutions.float().contiguous()
-        return _Tables(self.tables.data_ptr(), self._resolutions_c.data_ptr(), self.levels, self.table_size,
+        """The tables as ``hash_encoding.c`` reads them (``resolutions`` is a float32 buffer)."""
+        return _Tables(self.tables.data_ptr(), self.resolutions.data_ptr(), self.levels, self.table_size,
                        self.features, self.dense_levels)
 
     def torch_forward(self, unit_points: Tensor) -> Tensor:
