@@ -20,8 +20,8 @@ from nerf_backend.models.registry import GridModel
 from nerf_contract.dataset_layout import APPEARANCE_REGIONS
 
 BOX = SceneBounds((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
-DIFFUSE, GLOSSY, METAL, TRANSMISSIVE = (APPEARANCE_REGIONS.index(name)
-                                       for name in ("diffuse", "glossy", "metal", "transmissive"))
+DIFFUSE, GLOSSY, METAL, THIN_FILM, TRANSMISSIVE = (APPEARANCE_REGIONS.index(name) for name in
+                                                  ("diffuse", "glossy", "metal", "thin_film", "transmissive"))
 
 
 def _field(deferred: bool = False) -> GridField:
@@ -77,6 +77,21 @@ def test_metal_samples_see_the_view_reflected_about_the_true_normal():
     inputs = plain.direction_inputs(d, torch.zeros(5, 3))
     torch.testing.assert_close(inputs[:, :plain.direction_encoding.out_dims], plain.direction_encoding(d))
     assert not inputs[:, plain.direction_encoding.out_dims:].any()
+
+
+def test_thin_film_samples_see_the_view_and_its_reflection():
+    """A thin film's colour follows both what its coat mirrors and the angle to the normal (the
+    interference): the view's encoding and the reflection encoding of d − 2 (d·n) n."""
+    field = _field()
+    _facts(field, {"negative": THIN_FILM, "positive": METAL})
+    d = _directions(5, 4)
+    view_width = field.direction_encoding.out_dims
+    film = field.direction_inputs(d, torch.tensor([[-0.5, 0.0, 0.0]]).expand(5, 3))
+    torch.testing.assert_close(film[:, :view_width], field.direction_encoding(d))
+    reflected = d * torch.tensor([1.0, 1.0, -1.0])
+    torch.testing.assert_close(film[:, view_width:], field.reflection_encoding(reflected), atol=1e-5, rtol=0)
+    metal = field.direction_inputs(d, torch.tensor([[0.5, 0.0, 0.0]]).expand(5, 3))
+    assert torch.equal(metal[:, :view_width], torch.zeros(5, view_width))  # metal still drops the view
 
 
 def test_deferred_colour_shades_the_composited_direction_inputs():
