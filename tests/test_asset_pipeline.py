@@ -3,7 +3,8 @@ step done by hand, each a real process: its dataset rendered by Cycles (datasets
 `surface` preset trained from its prior, baked into a glTF asset (export), the asset imported
 into Blender and rendered from the test cameras by Cycles and EEVEE (datasets_gen --render-
 asset), both scored against the ground truth (eval --renders) and shown beside the NeRF in the
-report."""
+report. The real scene's training makes it slow (`make test-slow`); the default run takes the
+same commands from the tiny demo's shared surface run."""
 
 from __future__ import annotations
 
