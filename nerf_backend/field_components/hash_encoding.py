@@ -26,6 +26,7 @@ from ..kernels.build import kernel_or_note
 
 _PRIMES = (1, 2654435761, 805459861)
 MAX_FEATURES = 8  # hash_encoding.c's
+MAX_TABLE_SIZE = 2**32  # hash_encoding.c multiplies in 32 bits: exact modulo tables up to this
 
 
 class _Tables(ctypes.Structure):
@@ -109,6 +110,7 @@ class HashEncoding(nn.Module):
         return (unit_points.device.type == "cpu" and unit_points.dtype == torch.float32
                 and not unit_points.requires_grad and self.tables.dtype == self.resolutions.dtype == torch.float32
                 and self.tables.device.type == "cpu" and self.features <= MAX_FEATURES
+                and self.table_size <= MAX_TABLE_SIZE
                 and hash_encoding_library() is not None)
 
     def kernel_view(self) -> _Tables:

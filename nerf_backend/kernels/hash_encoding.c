@@ -125,8 +125,9 @@ static void *backward_work(void *arg) {
 }
 
 static int readable(const HashTables *h) {
+    /* The hash multiplies in 32 bits: exact modulo tables of up to 2^32 rows. */
     return h->features >= 1 && h->features <= MAX_FEATURES && h->levels >= 1 && h->table_size >= 1
-        && (h->table_size & (h->table_size - 1)) == 0 && h->dense_levels >= 0 && h->dense_levels <= h->levels;
+        && h->table_size <= ((int64_t)1 << 32) && (h->table_size & (h->table_size - 1)) == 0 && h->dense_levels >= 0 && h->dense_levels <= h->levels;
 }
 
 /* encoded [P, levels * features] of the points u [P, 3] (clamped to [0, 1]). */
