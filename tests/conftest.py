@@ -63,6 +63,24 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 
+# x86 instruction-set levels below AVX-512 and what the CPU needs to run each: the kernels'
+# vectors are 4 floats wide at x86-64 (SSE2), 8 at x86-64-v3 (AVX2, the AVX2 machines' code).
+X86_LEVELS = {"x86-64": {"sse2"}, "x86-64-v3": {"avx2", "fma", "bmi2", "f16c", "movbe"}}
+
+
+def cpu_runs_x86_level(level: str) -> bool:
+    """Whether this CPU runs code built for ``-march=LEVEL`` (one of X86_LEVELS), from the
+    instruction-set flags the kernels' cache is keyed on."""
+    import platform
+
+    from nerf_backend.kernels.build import cpu_identity
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return False
+    flags = {flag for line in cpu_identity().splitlines() if line.startswith("flags")
+             for flag in line.split(":", 1)[1].split()}
+    return X86_LEVELS[level] <= flags
+
+
 WARM = WarmInterpreter(REPO_ROOT)
 atexit.register(WARM.stop)
 

@@ -19,6 +19,7 @@ import dataclasses
 
 import pytest
 import torch
+from conftest import X86_LEVELS, cpu_runs_x86_level
 
 from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.field_components import compiled_colour, compiled_grid
@@ -125,25 +126,10 @@ def test_a_field_in_another_precision_colours_through_pytorch():
     assert compiled_colour.compiled_ray_colour(field, directions, torch.bfloat16) is None
 
 
-def _cpu_flags() -> set[str]:
-    """The instruction-set flags of the CPU (Linux), from what the kernels' cache is keyed on."""
-    from nerf_backend.kernels.build import cpu_identity
-    return {flag for line in cpu_identity().splitlines() if line.startswith("flags")
-            for flag in line.split(":", 1)[1].split()}
-
-
-# x86 instruction-set levels below AVX-512 and what the CPU needs to run each: the pass's vectors
-# are 4 floats wide at x86-64 (SSE2), 8 at x86-64-v3 (AVX2), 16 with AVX-512 (the native build
-# above, where the CPU has it). Each width's code colours as PyTorch does.
-X86_LEVELS = {"x86-64": {"sse2"}, "x86-64-v3": {"avx2", "fma", "bmi2", "f16c", "movbe"}}
-
-
 def test_nerf_kernel_target_builds_every_kernel_for_that_level(monkeypatch):
     """NERF_KERNEL_TARGET=x86-64-v3: the AVX2 machines' code, run here (docs/testing.md)."""
-    import platform
-
     from nerf_backend.kernels.build import TARGET_VARIABLE, load_kernel
-    if platform.machine().lower() not in ("x86_64", "amd64") or not X86_LEVELS["x86-64-v3"] <= _cpu_flags():
+    if not cpu_runs_x86_level("x86-64-v3"):
         pytest.skip("this CPU cannot run code for x86-64-v3")
     monkeypatch.setenv(TARGET_VARIABLE, "x86-64-v3")
     chosen = load_kernel("vm_grid")
@@ -154,10 +140,9 @@ def test_nerf_kernel_target_builds_every_kernel_for_that_level(monkeypatch):
 
 @pytest.mark.parametrize("level", sorted(X86_LEVELS))
 def test_the_pass_built_for_each_vector_width_the_cpu_runs_colours_as_pytorch(level):
-    import platform
-
+    """Each vector width's code (conftest's X86_LEVELS) colours as PyTorch does."""
     from nerf_backend.kernels.build import load_kernel
-    if platform.machine().lower() not in ("x86_64", "amd64") or not X86_LEVELS[level] <= _cpu_flags():
+    if not cpu_runs_x86_level(level):
         pytest.skip(f"this CPU cannot run code for {level}")
     library, why_not = load_kernel("vm_grid", level)
     assert library is not None, why_not

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import run_python
+from conftest import cpu_runs_x86_level, run_python
 
 from nerf_backend.configs.presets import PRESETS
 from nerf_backend.core.cameras import ray_box_intersection
@@ -70,18 +70,8 @@ def test_encoding_matches_the_papers_formula_on_dense_and_hashed_levels():
     assert torch.allclose(encoding(points.float()).double(), expected, atol=1e-5)
 
 
-def _x86_64_v3_runs_here() -> bool:
-    import platform
-    from pathlib import Path
-    if platform.machine().lower() not in ("x86_64", "amd64"):
-        return False
-    flags = set(" ".join(line for line in Path("/proc/cpuinfo").read_text().splitlines()
-                         if line.startswith("flags")).split())
-    return {"avx2", "fma", "bmi2", "f16c", "movbe"} <= flags
-
-
 @pytest.mark.parametrize("target", ["native", pytest.param("x86-64-v3", marks=pytest.mark.skipif(
-    not _x86_64_v3_runs_here(), reason="this CPU cannot run code for x86-64-v3"))])
+    not cpu_runs_x86_level("x86-64-v3"), reason="this CPU cannot run code for x86-64-v3"))])
 @pytest.mark.parametrize("features", [2, 4])
 @pytest.mark.parametrize("threads", [1, 2])
 def test_the_compiled_read_and_its_gradient_equal_pytorchs(target, features, threads, monkeypatch):
