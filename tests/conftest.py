@@ -214,10 +214,17 @@ def trained_run(tiny_demo_source, tmp_path_factory) -> Path:
                     "--set", f"rays_per_batch={TRAIN_RAYS}")
 
 
+MARCHED_ITERS = 300
+# A checkpoint every 20 steps: tests/test_training_extremes.py's kill -9 test kills a training of
+# these settings between several of them and compares the resumed run with this one.
+MARCHED_SETTINGS = ("checkpoint_every=20",)
+
+
 @pytest.fixture(scope="session")
 def trained_marched_run(tiny_demo_source, tmp_path_factory) -> Path:
-    """The fast preset (a marched grid) trained for 300 steps on the tiny demo dataset."""
-    return _trained(tmp_path_factory, tiny_demo_source, "fast_run", "--preset", "fast", "--iters", "300")
+    """The fast preset (a marched grid) trained for MARCHED_ITERS steps on the tiny demo dataset."""
+    return _trained(tmp_path_factory, tiny_demo_source, "fast_run", "--preset", "fast", "--iters", str(MARCHED_ITERS),
+                    *(argument for setting in MARCHED_SETTINGS for argument in ("--set", setting)))
 
 
 @pytest.fixture(scope="session")

@@ -135,7 +135,8 @@ def session(request, extension_zip, tmp_path_factory):
     session = json.loads(report.read_text())
     if request.param != "newest":
         assert session["blender"].startswith(request.param), session["blender"]
-    print(f"Blender {session['blender']}: add-on session ran in {time.monotonic() - start:.0f} s")
+    print(f"Blender {session['blender']}: add-on session ran in {time.monotonic() - start:.0f} s; "
+          f"seconds by step: {session['stage_seconds']}")
     return session
 
 

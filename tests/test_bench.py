@@ -6,6 +6,7 @@ import ctypes
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -79,20 +80,35 @@ def test_short_bench_writes_json_table_and_plot(tiny_demo_dataset, tmp_path):
     assert "| [bench_demo_40px](bench_demo_40px.md) | " in index and f"`{command}`" in index
 
 
+def _without_true_surface(dataset: Path, folder: Path) -> Path:
+    """A copy of ``dataset`` as a datasets_gen from before scene_geometry.ply wrote it: its
+    profile names no true surface."""
+    copy = folder / dataset.name
+    shutil.copytree(dataset, copy)
+    profile = json.loads((copy / "scene_profile.json").read_text())
+    (copy / profile.pop("geometry")["file"]).unlink()
+    (copy / "scene_profile.json").write_text(json.dumps(profile))
+    return copy
+
+
 def test_bench_at_several_budgets_trains_each_from_scratch_and_writes_the_trade(tiny_demo_dataset, tmp_path):
     """--budget-seconds 2,4: each budget its own bench from scratch (OUT/2s, OUT/4s), the trade
-    across them in trade.{json,md,png}; the same command again keeps what is finished."""
+    across them in trade.{json,md,png}; the same command again keeps what is finished. On a
+    dataset with no true surface: the benches score no geometry (the test above scores it), and
+    the trade needs none."""
+    dataset = _without_true_surface(tiny_demo_dataset, tmp_path)
     out = tmp_path / "trade"
-    command = ["-m", "nerf_backend", "bench", str(tiny_demo_dataset), "--presets", "fast,auto",
+    command = ["-m", "nerf_backend", "bench", str(dataset), "--presets", "fast,auto",
                "--budget-seconds", "4,2", "--points", "1", "--curve-views", "2", "--out", str(out)]
     result = run_python(*command)
-    scene = tiny_demo_dataset.name
+    scene = dataset.name
     for budget in (2, 4):
         bench = json.loads((out / f"{budget}s" / scene / "bench.json").read_text())
-        assert bench["budget"] == {"seconds": budget}
+        assert bench["budget"] == {"seconds": budget} and bench["geometry"] is None
+        assert "Chamfer" not in (out / f"{budget}s" / scene / "bench.md").read_text()
         for variant in bench["variants"]:  # trained from scratch to this budget, not a point on a longer run
             assert budget <= variant["final"]["train_seconds"] < 2 * budget
-            assert len(variant["curve"]) == 1
+            assert len(variant["curve"]) == 1 and "chamfer" not in variant["final"]
     trade = json.loads((out / "trade.json").read_text())
     assert trade["budgets_seconds"] == [2.0, 4.0]
     [summary] = trade["scenes"]

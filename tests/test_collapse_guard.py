@@ -27,6 +27,7 @@ import pytest
 
 from addon.core.jobs import TrainingJob
 from conftest import run_python
+from nerf_backend.configs.presets import PRESETS
 from nerf_backend.data.dataset import load_split
 from nerf_backend.metrics.image_metrics import psnr
 
@@ -121,8 +122,10 @@ def test_a_large_bright_object_is_learned_not_emptied(bright_object_datasets, tm
     the fix), fast without a profile scored 21.24 dB here, exactly the blank image's."""
     data = bright_object_datasets[dataset]
     run = tmp_path / "run"
+    # As many steps as the guard waits before it judges (collapse_check_after), so that the run's
+    # last validation is judged: a healthy run must pass it.
     run_python("-m", "nerf_backend", "train", str(data), "--preset", preset, "--out", str(run),
-               "--iters", "300", "--no-progress")
+               "--iters", str(PRESETS["fast"].collapse_check_after), "--no-progress")
     run_python("-m", "nerf_backend", "eval", str(run), "--no-progress")
     score = json.loads((run / "metrics.json").read_text())["psnr"]
     blank = _mean_blank_psnr(data)
@@ -130,6 +133,7 @@ def test_a_large_bright_object_is_learned_not_emptied(bright_object_datasets, tm
     # Measured after the fix: fast 31.38 dB, auto 30.74 dB; the blank image 21.24 dB.
     assert score > blank + 8.0
     assert not [e for e in _events(run) if e["event"] == "collapse"], "a healthy run logs no collapse"
+    assert [e["iteration"] for e in _events(run) if e["event"] == "val"][-1] == PRESETS["fast"].collapse_check_after
 
 
 def _train_frozen(data, run, iterations: int):

@@ -31,9 +31,16 @@ ZIP, WORK, REPORT = Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3])
 SCENE = Path(os.environ.get("NERF_TEST_SCENE", Path(__file__).resolve().parents[3] / "shared" / "scenes" / "A.blend"))
 PACKAGE_ID = "nerf_from_blender"
 report: dict = {"blender": bpy.app.version_string}
+stage_seconds: dict[str, float] = {}  # each step's wall time, under its report key: where the session's time goes
+_last_save = time.time()
 
 
 def save() -> None:
+    global _last_save
+    now = time.time()
+    stage_seconds[[key for key in report if key != "stage_seconds"][-1]] = round(now - _last_save, 1)
+    _last_save = now
+    report["stage_seconds"] = stage_seconds
     REPORT.write_text(json.dumps(report, indent=1, default=str))
 
 
