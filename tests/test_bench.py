@@ -20,6 +20,7 @@ from PIL import Image
 from conftest import REPO_ROOT, run_python
 from nerf_backend.bench import Variant, ablation_order, ablation_variants, time_to_reach
 from nerf_backend.configs.presets import PRESETS
+from nerf_backend.data.run_folder import LOCK_NAME
 from nerf_backend.fields.mlp_field import NerfField
 from nerf_backend.kernels.build import load_kernel
 from nerf_backend.bench.plain_nerf import PlainMLP, fourier_features
@@ -281,6 +282,12 @@ def _children(pid: int) -> list[int]:
     return found
 
 
+def _variant_pid(run: Path) -> int:
+    """The process training in ``run``: the one its lock names (started by the bench, directly or
+    from its fork server)."""
+    return int((run / LOCK_NAME).read_text())
+
+
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads child processes from /proc")
 def test_stopping_bench_stops_the_variant_it_is_training(tiny_demo_dataset, tmp_path):
     out = tmp_path / "bench"
@@ -292,13 +299,13 @@ def test_stopping_bench_stops_the_variant_it_is_training(tiny_demo_dataset, tmp_
     while not (events.is_file() and '"train"' in events.read_text()):
         assert time.monotonic() < deadline and bench.poll() is None, "the variant never started training"
         time.sleep(0.3)
-    children = _children(bench.pid)
-    assert children
+    # The variant's process (its run folder's lock names it) and every process the bench started.
+    processes = [_variant_pid(out / "runs" / "fast"), *_children(bench.pid)]
     bench.send_signal(signal.SIGTERM)
     bench.wait(60)
     deadline = time.monotonic() + 60
     while any(Path(f"/proc/{pid}").exists() and "Z" not in Path(f"/proc/{pid}/stat").read_text().split()[2:3]
-              for pid in children):
+              for pid in processes):
         assert time.monotonic() < deadline, "the variant's process outlived the bench"
         time.sleep(0.3)
 
@@ -314,9 +321,7 @@ def test_a_variant_process_that_dies_is_an_error_not_a_hang(tiny_demo_dataset, t
     while not (events.is_file() and '"train"' in events.read_text()):
         assert time.monotonic() < deadline and bench.poll() is None, "the variant never started training"
         time.sleep(0.3)
-    for pid in _children(bench.pid):
-        if "spawn_main" in Path(f"/proc/{pid}/cmdline").read_text():
-            os.kill(pid, signal.SIGKILL)  # what the system's out-of-memory killer does
+    os.kill(_variant_pid(out / "runs" / "fast"), signal.SIGKILL)  # what the system's out-of-memory killer does
     _, stderr = bench.communicate(timeout=60)
     assert bench.returncode == 2
     assert "variant 'fast' failed: its process ended (exit code -9) without a result" in stderr

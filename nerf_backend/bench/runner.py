@@ -137,6 +137,18 @@ def _raise_exit(signum, frame) -> None:
     raise SystemExit(128 + signum)
 
 
+def variant_processes() -> multiprocessing.context.BaseContext:
+    """How each variant's process starts. Still a process of its own, which never ran another
+    variant; on Linux forked from a server that imported torch and the backend once (importing
+    them took 3 s a variant here), elsewhere spawned (Windows has no fork, and macOS's system
+    frameworks are not safe to fork once loaded)."""
+    if not sys.platform.startswith("linux"):
+        return multiprocessing.get_context("spawn")
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload([__name__])
+    return context
+
+
 def run_bench(dataset: Path, variants: list[Variant], out_dir: Path, budget_seconds: float | None,
               iterations: int | None, points: int | tuple[float, ...] = 6, curve_views: int = 8, seed: int = 0,
               device: str = "auto", overwrite: bool = False, command: str | None = None) -> dict:
@@ -151,7 +163,7 @@ def run_bench(dataset: Path, variants: list[Variant], out_dir: Path, budget_seco
     if out_dir.exists() and any(out_dir.iterdir()) and not overwrite:
         raise NerfError(f"{out_dir}: bench folder exists and is not empty; pass --overwrite to replace it")
     out_dir.mkdir(parents=True, exist_ok=True)
-    context = multiprocessing.get_context("spawn")
+    context = variant_processes()
     results = []
     # SIGTERM becomes an exception here, so that the variant's process is stopped with us
     # (an orphan would go on training and hold its run folder's lock).
