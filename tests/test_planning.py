@@ -90,7 +90,7 @@ def _check_shaping(preset, kind, facts, plan):
         assert config.grid.deferred_colour is True and "once a ray" in decisions["colour"]["reason"]
         # The demo's gold sphere is metal, but too little of it; a foreign dataset says nothing.
         assert config.grid.region_appearance is False
-        assert ("are metal, under" if kind == "demo" else "does not say") in decisions["region_appearance"]["reason"]
+        assert ("are metal or thin film, under" if kind == "demo" else "does not say") in decisions["region_appearance"]["reason"]
         assert MIN_RESOLUTION <= config.grid.resolution <= MAX_RESOLUTION
         assert config.grid.finest_cell == pytest.approx(pixel_footprint(facts.train_split, plan.ray_bounds.box))
         assert config.grid.last_growth_min_steps == (LAST_GROWTH_MIN_STEPS if config.grid.upsample_iterations else 0)
