@@ -38,19 +38,21 @@ import torch.nn.functional as F
 from scipy import ndimage
 from torch import Tensor, nn
 
+from .distance_transform import distance_to_unset
+
 _CUBE = np.ones((3, 3, 3), bool)  # the prior's dilation: a cube of a cell on each side
 
 
 def band_distances(surface: np.ndarray, solid: np.ndarray, margin_cells: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(outside, inside)`` ``[nx, ny, nz]``: at each prior cell, the distance (in cells,
-    between cell centres) to the nearest band cell from the exterior side and from the
+    """``(outside, inside)`` ``[nx, ny, nz]`` float32: at each prior cell, the distance (in
+    cells, between cell centres) to the nearest band cell from the exterior side and from the
     interior side; 0 in the band and on the other side."""
     exterior = ~solid
     interior = solid & ~surface
     if margin_cells > 0:
         exterior = ndimage.binary_dilation(exterior, _CUBE, iterations=margin_cells)
         interior = ndimage.binary_dilation(interior, _CUBE, iterations=margin_cells) & ~exterior
-    return ndimage.distance_transform_edt(exterior), ndimage.distance_transform_edt(interior)
+    return distance_to_unset(exterior), distance_to_unset(interior)
 
 
 class SignedDistanceBounds(nn.Module):
