@@ -23,6 +23,7 @@ import ctypes
 
 import numpy as np
 import torch
+from scipy import ndimage
 
 from ..kernels.build import kernel_or_note
 
@@ -35,8 +36,6 @@ def distance_to_unset(mask: np.ndarray) -> np.ndarray:
     if not mask.all():  # scipy's answer for a mask with no unset cell is not a distance
         library, _ = kernel_or_note("distance_transform", "scipy's distance transform runs")
         if library is None:
-            from scipy import ndimage  # only where the kernel is unavailable
-
             return ndimage.distance_transform_edt(mask).astype(np.float32)
     else:
         return np.full(mask.shape, np.inf, np.float32)
