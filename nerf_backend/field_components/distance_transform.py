@@ -33,12 +33,11 @@ def distance_to_unset(mask: np.ndarray) -> np.ndarray:
     the same shape) is False; ``inf`` everywhere if it is True everywhere."""
     if mask.ndim != 3:
         raise ValueError(f"distance_to_unset takes a 3-D mask, not one of shape {mask.shape}")
-    if not mask.all():  # scipy's answer for a mask with no unset cell is not a distance
-        library, _ = kernel_or_note("distance_transform", "scipy's distance transform runs")
-        if library is None:
-            return ndimage.distance_transform_edt(mask).astype(np.float32)
-    else:
+    if mask.all():  # no unset cell to be near (scipy's answer there is not a distance)
         return np.full(mask.shape, np.inf, np.float32)
+    library, _ = kernel_or_note("distance_transform", "scipy's distance transform runs")
+    if library is None:
+        return ndimage.distance_transform_edt(mask).astype(np.float32)
     cells = np.ascontiguousarray(mask, dtype=np.uint8)
     out = np.empty(mask.shape, np.float32)
     library.distance_transform.restype = ctypes.c_int

@@ -115,8 +115,8 @@ class SurfaceField(GridAppearance, MarchableField):
         self.final_beta = config.final_beta_cells * final_cell
         # A buffer: a checkpoint renders with the softness it was trained to.
         self.register_buffer("beta", torch.tensor(self.initial_beta))
-        # The band's bounds are built at the first step (training only: two distance
-        # transforms of the prior, 0.3-0.5 s each at 256 cells a side) and fitted to the vertices at each size.
+        # The band's bounds are built at the first step (training only: two distance transforms
+        # of the prior, 0.3-0.5 s each at 256 cells a side) and fitted to the vertices at each size.
         self._band_prior = prior if config.prior_band and prior is not None and prior.bounds_the_surface else None
         self.band: SignedDistanceBounds | None = None
         self.register_buffer("vertex_lower", None, persistent=False)

@@ -5,7 +5,7 @@
  * Felzenszwalb and Huttenlocher's separable transform: the squared distance along z (0 or
  * INFINITY), then along y and along x the lower envelope of the parabolas (q - i)² + f(i) of
  * the line's finite values, each pass over whole lines split between threads. Squared distances
- * are integers below 2^24 for any grid under 2 896 cells a side, so float holds them exactly;
+ * are integers up to 2^24 for any grid under 2 365 cells a side, so float holds them exactly;
  * the envelope's crossings are computed in double. scipy's distance_transform_edt (the
  * fallback) computes the same distances and their nearest cells besides, on one thread: about
  * five times as long for a 256³ prior. */
