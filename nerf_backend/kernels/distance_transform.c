@@ -10,10 +10,9 @@
  * fallback) computes the same distances and their nearest cells besides, on one thread: about
  * five times as long for a 256³ prior. */
 
-#include <math.h>
-#include <pthread.h>
-#include <stdint.h>
 #include <stdlib.h>
+
+#include "grid_common.h"
 
 typedef struct {
     float *values;            /* [nx][ny][nz], transformed in place along `axis` */
@@ -94,21 +93,14 @@ static void *work(void *argument) {
     return 0;
 }
 
+/* One pass over `lines` lines, shared out between the jobs; whether a job lacked scratch memory. */
 static int run_pass(Job *jobs, int64_t threads, int64_t lines) {
-    pthread_t handles[64];
-    int64_t started = 0;
     for (int64_t i = 0; i < threads; ++i) {
         jobs[i].first_line = lines * i / threads;
         jobs[i].end_line = lines * (i + 1) / threads;
         jobs[i].failed = 0;
     }
-    for (int64_t i = 1; i < threads; ++i) {
-        if (pthread_create(&handles[i], 0, work, &jobs[i]) != 0) break;
-        started = i;
-    }
-    work(&jobs[0]);
-    for (int64_t i = 1; i <= started; ++i) pthread_join(handles[i], 0);
-    for (int64_t i = started + 1; i < threads; ++i) work(&jobs[i]);
+    run_all(work, jobs, sizeof(Job), threads);
     int failed = 0;
     for (int64_t i = 0; i < threads; ++i) failed |= jobs[i].failed;
     return failed;
@@ -117,9 +109,8 @@ static int run_pass(Job *jobs, int64_t threads, int64_t lines) {
 /* The distances of `mask` [nx][ny][nz] (non-zero: set) into `out` (same shape) on `threads`
  * threads; 0 on success, 1 where scratch memory could not be had. */
 int distance_transform(const uint8_t *mask, int64_t nx, int64_t ny, int64_t nz, float *out, int64_t threads) {
-    if (threads < 1) threads = 1;
-    if (threads > 64) threads = 64;
-    Job jobs[64];
+    threads = clamp_threads(threads, MAX_THREADS);
+    Job jobs[MAX_THREADS];
     for (int64_t i = 0; i < threads; ++i) {
         jobs[i] = (Job){out, {nx, ny, nz}, 0, mask, 0, 0, 0};
     }
