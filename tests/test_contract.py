@@ -26,12 +26,13 @@ def _backend(argv):
 
 def test_each_command_is_the_module_it_names_and_a_process_imports_only_its_own():
     """A process builds only its command's parser and imports only that command's module (the
-    others' imports cost a ``train`` about 0.3 s); ``--help`` alone names them all."""
+    others' imports cost a ``train`` about 0.3 s), and not scipy.ndimage or scikit-image's
+    metrics (another 0.3 s) which training never calls; ``--help`` alone names them all."""
     assert [command_module(name).NAME for name in COMMANDS] == list(COMMANDS)
     probe = ("import sys; from nerf_backend.cli import parse_arguments; "
              "parse_arguments(['train', 'ds', '--out', 'run']); "
              "print(*sorted(m for m in sys.modules if m.startswith('nerf_backend.commands.') or m in "
-             "('nerf_backend.bench', 'skimage.measure')))")
+             "('nerf_backend.bench', 'skimage.measure', 'skimage.metrics', 'scipy.ndimage')))")
     loaded = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
     assert loaded.split() == ["nerf_backend.commands.arguments", "nerf_backend.commands.train"], loaded
     with pytest.raises(SystemExit):

@@ -69,15 +69,17 @@ def fast_run(trained_marched_run, tmp_path_factory) -> tuple[Path, float]:
 # --- precision ----------------------------------------------------------------------------
 
 # Reduced precision trains as float32 does within PRECISION_MARGIN_DB after PRECISION_ITERS
-# steps of 512 rays (PRECISION_SETTINGS; tiny demo, fast preset, seed 0, torch 2.13.0, this CPU): float32
-# 25.14 dB, bfloat16 25.14, float16 25.15. On AVX2, which has no native bfloat16 or float16
-# (torch's AVX2 kernels, ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2, one thread), the two
-# runs take 13.9 and 19.4 s (float32 4.0 s): half the preset's 1024 rays took 23.7 and 35.2 s
-# in the suite. (At 1024 rays: 26.52, 26.52, 26.51 dB; at 300 steps 30.05, 30.02, 30.04.)
+# steps of 256 rays (PRECISION_SETTINGS; tiny demo, fast preset, seed 0, torch 2.13.0): float32
+# 24.50 dB, bfloat16 24.52, float16 24.52 (AVX2 code: 24.50, 24.53, 24.53). On AVX2, which has
+# no native bfloat16 or float16 (ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2 on an AVX-512
+# Xeon), torch emulates the half-precision products: the whole `train` command took 10.9 s
+# (bfloat16) and 14.3 s (float16) against float32's 4.4; at 512 rays, 20.3 and 29.3 s for
+# 25.14, 25.14 and 25.15 dB. The lost 0.6 dB is no loss to the claim: the margin is between
+# precisions, which differ by 0.03 dB, and float16 with learning rates 0 scores 15.43.
 # float16 without its loss scale scores within the margin too (26.38 dB at 100 steps of 1024
 # rays): the scale is checked directly, in the checkpoint.
 PRECISION_ITERS = 100
-PRECISION_SETTINGS = (*FAST_SETTINGS, "rays_per_batch=512")
+PRECISION_SETTINGS = (*FAST_SETTINGS, "rays_per_batch=256")
 PRECISION_MARGIN_DB = 0.5
 
 

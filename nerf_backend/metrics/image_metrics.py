@@ -12,7 +12,6 @@ import math
 
 import numpy as np
 import torch
-from skimage.metrics import structural_similarity
 from torch import Tensor
 
 
@@ -36,6 +35,9 @@ def ssim(image: np.ndarray | Tensor, reference: np.ndarray | Tensor) -> float:
     """Mean SSIM of two ``H×W×3`` images in [0, 1], computed by scikit-image in float64 (its
     separable Gaussian filters: 0.12 s for an 800×800 pair on one core, where PyTorch's float64
     grouped convolutions took 1.1 s)."""
+    # Imported here: scikit-image's metrics bring scipy.ndimage, 0.3 s, which training never needs.
+    from skimage.metrics import structural_similarity
+
     a, b = np.asarray(image, dtype=np.float64), np.asarray(reference, dtype=np.float64)
     if min(a.shape[:2]) < SSIM_WINDOW:
         raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}×{SSIM_WINDOW} pixels, got {a.shape[:2]}")
