@@ -123,7 +123,7 @@ def test_the_grid_fields_training_read_matches_its_separate_reads():
     assert _close(density, density_ref, 1e-4) and _close(colour, colour_ref)
 
 
-def _march_setup(density_scale: float, wall: bool = False):
+def _march_setup(density_scale: float, wall: bool = False, clustered: bool = False):
     from nerf_backend.model_components import marcher
     from nerf_backend.model_components.occupancy import OccupancyGrid
 
@@ -144,6 +144,17 @@ def _march_setup(density_scale: float, wall: bool = False):
     rays, steps, step = 500, 120, 0.025
     origins = torch.randn(rays, 3) * 0.3 + torch.tensor([0.0, -3.0, 0.0])
     directions = torch.nn.functional.normalize(torch.randn(rays, 3) * 0.2 + torch.tensor([0.0, 1.0, 0.0]), dim=-1)
+    if clustered:  # occupied cells in two balls alone, so that most blocks of 8³ cells are empty
+        centres = grid.box_min + (grid.box_max - grid.box_min) * torch.rand(2, 3)
+        side = (grid.box_max - grid.box_min) / torch.tensor(grid.cells)
+        index = torch.stack(torch.meshgrid(*[torch.arange(n) for n in grid.cells], indexing="ij"), dim=-1)
+        centre_of_cell = grid.box_min + (index + 0.5) * side
+        near_a_centre = (centre_of_cell[..., None, :] - centres).norm(dim=-1).min(dim=-1).values < 0.35
+        grid.occupied &= near_a_centre
+        # Rays along an axis (a direction component 0) and rays that start inside the box too.
+        directions[:50] = torch.tensor([0.0, 1.0, 0.0])
+        origins[50:100] = origins[50:100] * 0.5 + torch.tensor([0.0, 2.0, 0.0])
+        directions[50:100] = -directions[50:100]
     near, far, offset = torch.full((rays,), 1.5), torch.full((rays,), 4.5), torch.rand(rays, 1)
     edges = marcher.march_edges(near, far, step, offset, 0, steps)
     deltas = edges[:, 1:] - edges[:, :-1]
@@ -154,14 +165,18 @@ def _march_setup(density_scale: float, wall: bool = False):
     return field, grid, (origins, directions, near, far, offset), step, steps, occupied, expected
 
 
+@pytest.mark.parametrize("clustered", [False, True], ids=["scattered", "clustered"])
 @pytest.mark.parametrize("density_scale", [1.0, 300.0])
-def test_the_compiled_training_march_finds_the_lit_samples_pytorchs_march_finds(density_scale):
+def test_the_compiled_training_march_finds_the_lit_samples_pytorchs_march_finds(density_scale, clustered):
     """marcher.occupied_samples + lit_samples against kernels/vm_grid.c's march_train: the same
     flat sample indices, in the same order (a faint field: every occupied sample is lit; a dense
-    one: rays stop at their first surface)."""
+    one: rays stop at their first surface). Clustered, most of the march's blocks are empty,
+    some rays run along an axis and some start inside the box."""
     from nerf_backend.model_components.compiled_march import compiled_lit_samples
 
-    field, grid, rays, step, steps, occupied, expected = _march_setup(density_scale)
+    field, grid, rays, step, steps, occupied, expected = _march_setup(density_scale, clustered=clustered)
+    if clustered:
+        assert float(grid.occupied_blocks(8).float().mean()) < 0.5 and len(expected) > 100
     with torch.no_grad():
         found, weights = compiled_lit_samples(grid, step, steps, field.compiled_density())(*rays)
     assert torch.equal(found, expected)
@@ -178,8 +193,8 @@ def test_the_compiled_training_march_finds_the_lit_samples_pytorchs_march_finds(
         density[occupied] = field.density(positions.view(-1, 3)[occupied])
         reference, _ = render_weights(density.view(deltas.shape), deltas)
     assert float((weights - reference.view(-1)[found]).abs().max()) < 1e-5
-    if density_scale > 100:
-        assert len(expected) < 0.2 * len(occupied)  # the early stop is exercised
+    if density_scale > 100:  # the early stop is exercised
+        assert len(expected) < (0.5 if clustered else 0.2) * len(occupied)
 
 
 def test_training_colours_the_weighty_samples_and_gives_the_rest_their_rays_mean():
