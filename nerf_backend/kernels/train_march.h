@@ -63,8 +63,9 @@ static void *train_march_work(void *arg) {
             float lo = near + a * s->step, hi = near + b * s->step;
             lo = lo < far ? lo : far;
             hi = hi < far ? hi : far;
-            /* The steps run to the longest ray's count; this ray's end here (lego: 60 % of the
-             * steps lay past their ray's far bound, each an empty turn of this loop). */
+            /* The steps run to the longest ray's count; this ray ends here (lego: a ray that
+             * crosses the box spans 163 of its 472 steps on average; each step past its far
+             * bound was an empty turn of this loop). */
             if (!(lo < far)) break;
             const float delta = hi - lo;
             if (!(delta > 0.0f)) continue;
