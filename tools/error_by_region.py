@@ -1,0 +1,92 @@
+"""Where a run's test error lies, by what the true surface under each pixel is made of: each
+test pixel's ground-truth depth gives the point it sees, the dataset's occupancy prior gives
+that point's region (``regions`` in ``occupancy_prior.npz``: diffuse, glossy, metal, thin film,
+transmissive), and pixels whose alpha is between 0.02 and 0.98 count as edges. For each region:
+its share of the pixels, its share of the squared error, and the PSNR the views would score if
+that region's error were zero (how much any change to that region's appearance could gain).
+
+    python tools/error_by_region.py DATASET RENDERS
+
+RENDERS holds the test views' renders by name (``RUN/renders/test`` after ``render RUN``). The
+PSNR here is the mean squared error's over every pixel of every view, on white, as `eval`
+composites; `eval`'s own figure is the mean of each view's PSNR, a few hundredths away."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy import ndimage
+
+from nerf_backend.core.cameras import camera_rays, pixel_centres
+from nerf_backend.core.files import read_exr
+from nerf_backend.data.dataset import load_split
+from nerf_backend.data.occupancy_prior import load_occupancy_prior
+from nerf_backend.evaluation.evaluate import read_rgb
+from nerf_contract.dataset_layout import APPEARANCE_REGIONS
+
+EDGE_ALPHA = (0.02, 0.98)
+BACKGROUND, EDGE = -1, -2
+
+
+def nearest_region(regions: np.ndarray) -> np.ndarray:
+    """Every cell given the region of the nearest classified cell (the prior marks cells around
+    the surface; a point the depth gives may fall just outside them)."""
+    _, nearest = ndimage.distance_transform_edt(regions == 0, return_indices=True)
+    return regions[tuple(nearest)]
+
+
+def pixel_regions(split, index: int, regions: np.ndarray, box_min: np.ndarray, cell: float) -> np.ndarray:
+    """``[H·W]``: each pixel's region index, BACKGROUND or EDGE."""
+    depth = read_exr(split.depth_path(index))
+    alpha = depth["A"].reshape(-1)
+    height, width = depth["Z"].shape
+    origins, directions = camera_rays(split.intrinsics, split.poses[index], pixel_centres(width, torch.arange(height * width)))
+    points = (origins + directions * torch.from_numpy(depth["Z"].reshape(-1).astype(np.float32))[:, None]).numpy()
+    cells = np.floor((points - box_min) / cell).astype(np.int64)
+    inside = ((cells >= 0) & (cells < np.asarray(regions.shape))).all(axis=1)
+    cells = np.clip(cells, 0, np.asarray(regions.shape) - 1)
+    found = np.where(inside & (alpha > 0.5), regions[cells[:, 0], cells[:, 1], cells[:, 2]].astype(np.int64), BACKGROUND)
+    return np.where((alpha > EDGE_ALPHA[0]) & (alpha < EDGE_ALPHA[1]), EDGE, found)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("dataset", type=Path)
+    parser.add_argument("renders", type=Path)
+    args = parser.parse_args()
+    split = load_split(args.dataset, "test")
+    prior = load_occupancy_prior(args.dataset, "surface")
+    if prior is None or prior.regions is None:
+        raise SystemExit(f"{args.dataset}: no occupancy prior with regions (a dataset made by datasets_gen since issue 60)")
+    regions = nearest_region(prior.regions.numpy())
+    error_sum: dict[int, float] = {}
+    pixel_count: dict[int, int] = {}
+    total, pixels = 0.0, 0
+    for index in range(len(split)):
+        if split.depth_path(index) is None:
+            raise SystemExit(f"{args.dataset}: test view {index} has no ground-truth depth")
+        truth = split.rgb_on_white(index).numpy().astype(np.float64)
+        render = read_rgb(args.renders / f"{split.image_paths[index].stem}.png").astype(np.float64)
+        error = ((render - truth) ** 2).sum(axis=-1).reshape(-1)
+        labels = pixel_regions(split, index, regions, np.asarray(prior.box_min), prior.cell_size)
+        for label in np.unique(labels):
+            chosen = labels == label
+            error_sum[int(label)] = error_sum.get(int(label), 0.0) + float(error[chosen].sum())
+            pixel_count[int(label)] = pixel_count.get(int(label), 0) + int(chosen.sum())
+        total += float(error.sum())
+        pixels += error.size
+    psnr = -10 * math.log10(total / (3 * pixels))
+    print(f"PSNR {psnr:.2f} dB over {len(split)} test views")
+    names = {BACKGROUND: "background", EDGE: f"edges ({EDGE_ALPHA[0]} < alpha < {EDGE_ALPHA[1]})"}
+    for label in sorted(error_sum):
+        without = -10 * math.log10(max(total - error_sum[label], 1e-30) / (3 * pixels))
+        print(f"{names.get(label, APPEARANCE_REGIONS[label]):30s} pixels {pixel_count[label] / pixels:6.1%}  "
+              f"error {error_sum[label] / total:6.1%}  PSNR were it zero {without:.2f} (+{without - psnr:.2f})")
+
+
+if __name__ == "__main__":
+    main()
