@@ -5,11 +5,18 @@ transmissive), and pixels whose alpha is between 0.02 and 0.98 count as edges. F
 its share of the pixels, its share of the squared error, and the PSNR the views would score if
 that region's error were zero (how much any change to that region's appearance could gain).
 
-    python tools/error_by_region.py DATASET RENDERS
+    python tools/error_by_region.py DATASET RENDERS [--noise-from OTHER]
 
 RENDERS holds the test views' renders by name (``RUN/renders/test`` after ``render RUN``). The
 PSNR here is the mean squared error's over every pixel of every view, on white, as `eval`
-composites; `eval`'s own figure is the mean of each view's PSNR, a few hundredths away."""
+composites; `eval`'s own figure is the mean of each view's PSNR, a few hundredths away.
+
+With ``--noise-from OTHER``, a dataset of the same scene and test cameras rendered with another
+Cycles seed (``datasets_gen ... --seed 1``: the test views do not depend on it), the ground
+truth's own noise is measured too: half the squared difference of the two renders is one
+render's variance about the noise-free image, so it is the error a perfect model would make.
+Each region's share of its error that is the ground truth's noise is printed beside it, and the
+PSNR a perfect model would score."""
 
 from __future__ import annotations
 
@@ -57,13 +64,18 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("dataset", type=Path)
     parser.add_argument("renders", type=Path)
+    parser.add_argument("--noise-from", type=Path, help="the same test views rendered with another Cycles seed")
     args = parser.parse_args()
     split = load_split(args.dataset, "test")
+    other = load_split(args.noise_from, "test") if args.noise_from else None
+    if other is not None and (len(other) != len(split) or not torch.equal(other.poses, split.poses)):
+        raise SystemExit(f"{args.noise_from}: its test cameras are not {args.dataset}'s")
     prior = load_occupancy_prior(args.dataset, "surface")
     if prior is None or prior.regions is None:
         raise SystemExit(f"{args.dataset}: no occupancy prior with regions (a dataset made by datasets_gen since issue 60)")
     regions = nearest_region(prior.regions.numpy())
     error_sum: dict[int, float] = {}
+    noise_sum: dict[int, float] = {}
     pixel_count: dict[int, int] = {}
     total, pixels = 0.0, 0
     for index in range(len(split)):
@@ -73,19 +85,26 @@ def main() -> None:
         render = read_rgb(args.renders / f"{split.image_paths[index].stem}.png").astype(np.float64)
         error = ((render - truth) ** 2).sum(axis=-1).reshape(-1)
         labels = pixel_regions(split, index, regions, np.asarray(prior.box_min), prior.cell_size)
+        if other is not None:
+            noise = ((other.rgb_on_white(index).numpy().astype(np.float64) - truth) ** 2).sum(axis=-1).reshape(-1) / 2
         for label in np.unique(labels):
             chosen = labels == label
             error_sum[int(label)] = error_sum.get(int(label), 0.0) + float(error[chosen].sum())
+            if other is not None:
+                noise_sum[int(label)] = noise_sum.get(int(label), 0.0) + float(noise[chosen].sum())
             pixel_count[int(label)] = pixel_count.get(int(label), 0) + int(chosen.sum())
         total += float(error.sum())
         pixels += error.size
     psnr = -10 * math.log10(total / (3 * pixels))
     print(f"PSNR {psnr:.2f} dB over {len(split)} test views")
+    if noise_sum:
+        print(f"a perfect model (the ground truth's noise alone): PSNR {-10 * math.log10(sum(noise_sum.values()) / (3 * pixels)):.2f} dB")
     names = {BACKGROUND: "background", EDGE: f"edges ({EDGE_ALPHA[0]} < alpha < {EDGE_ALPHA[1]})"}
     for label in sorted(error_sum):
         without = -10 * math.log10(max(total - error_sum[label], 1e-30) / (3 * pixels))
+        noise = f"  of it noise {noise_sum[label] / max(error_sum[label], 1e-30):5.0%}" if noise_sum else ""
         print(f"{names.get(label, APPEARANCE_REGIONS[label]):30s} pixels {pixel_count[label] / pixels:6.1%}  "
-              f"error {error_sum[label] / total:6.1%}  PSNR were it zero {without:.2f} (+{without - psnr:.2f})")
+              f"error {error_sum[label] / total:6.1%}  PSNR were it zero {without:.2f} (+{without - psnr:.2f}){noise}")
 
 
 if __name__ == "__main__":
