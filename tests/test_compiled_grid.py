@@ -156,6 +156,10 @@ def _march_setup(density_scale: float, wall: bool = False, clustered: bool = Fal
         origins[50:100] = origins[50:100] * 0.5 + torch.tensor([0.0, 2.0, 0.0])
         directions[50:100] = -directions[50:100]
     near, far, offset = torch.full((rays,), 1.5), torch.full((rays,), 4.5), torch.rand(rays, 1)
+    # Half the rays end inside the box, where their last steps may be occupied: the march must
+    # take each ray's steps up to its own far bound, not fewer, though others run on.
+    ends_inside = torch.rand(rays) < 0.5
+    far = torch.where(ends_inside, near + 3.0 * torch.rand(rays), far)
     edges = marcher.march_edges(near, far, step, offset, 0, steps)
     deltas = edges[:, 1:] - edges[:, :-1]
     positions = origins[:, None] + directions[:, None] * marcher.interval_midpoints(edges)[..., None]
