@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from nerf_backend.core.cameras import camera_rays, pixel_centres
+from nerf_backend.core.cameras import camera_rays, pixel_centres, ray_box_intersection
 from nerf_backend.data.dataset import load_split
 from nerf_backend.data.run_folder import RunFolder
 from nerf_backend.evaluation.inference import load_trained_model
@@ -27,7 +27,7 @@ from nerf_backend.model_components.compiled_march import compiled_lit_samples
 
 
 def training_batches(run: Path, dataset: Path, rays: int, batches: int, seed: int = 0):
-    """The model, its march (``compiled_lit_samples``) and ``batches`` batches of ``rays``
+    """The run's training march (``compiled_lit_samples``) and ``batches`` batches of ``rays``
     random training rays, each cut to the occupancy grid's box and given a random offset."""
     model, _, _ = load_trained_model(RunFolder(run), torch.device("cpu"))
     density = model.field.compiled_density()
@@ -36,16 +36,13 @@ def training_batches(run: Path, dataset: Path, rays: int, batches: int, seed: in
     lit_fn = compiled_lit_samples(model.occupancy, model.step, model.samples_per_ray, density)
     split = load_split(dataset, "train")
     generator = torch.Generator().manual_seed(seed)
-    low, high = model.occupancy.box_min, model.occupancy.box_max
     width, height = split.intrinsics.width, split.intrinsics.height
     made = []
     for _ in range(batches):
         views = torch.randint(0, len(split), (rays,), generator=generator)
         pixels = torch.randint(0, width * height, (rays,), generator=generator)
         origins, directions = camera_rays(split.intrinsics, split.poses[views], pixel_centres(width, pixels))
-        to_low, to_high = (low - origins) / directions, (high - origins) / directions
-        near = torch.minimum(to_low, to_high).max(dim=1).values.clamp(min=0.0)
-        far = torch.maximum(torch.maximum(to_low, to_high).min(dim=1).values, near)
+        near, far, _ = ray_box_intersection(origins, directions, model.occupancy.box_min, model.occupancy.box_max)
         offset = torch.rand((rays, 1), generator=generator)
         made.append((origins.contiguous(), directions.contiguous(), near.contiguous(), far.contiguous(), offset))
     return lit_fn, made

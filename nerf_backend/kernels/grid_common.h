@@ -1,7 +1,8 @@
 #ifndef GRID_COMMON_H
 #define GRID_COMMON_H
 /* What the grid kernels share (vm_grid.c, sparse_grid.c): the linear read along one axis and
- * running a function on several POSIX threads (distance_transform.c's passes too). build.py hashes the headers with each kernel. */
+ * running a function on several POSIX threads (distance_transform.c's passes too). build.py
+ * hashes the headers with each kernel. */
 
 #include <math.h>
 #include <pthread.h>
