@@ -276,3 +276,29 @@ def rays_through_box(box, count: int, seed: int):
     directions = torch.nn.functional.normalize(targets - origins, dim=-1)
     near, far, _ = ray_box_intersection(origins, directions, torch.tensor(box.box_min), torch.tensor(box.box_max))
     return origins, directions, near, far
+
+
+def deferred_grid_model(box, seed: int):
+    """The auto preset's grid model with deferred colour over ``box`` (a ``SceneBounds``), random
+    smooth density blobs (random values on a coarse grid, interpolated up) and random appearance,
+    its occupancy updated and neither all empty nor all full; in inference mode, rendering no
+    sample that training would skip (``render_alpha_threshold`` 0)."""
+    import dataclasses
+
+    import torch
+    from nerf_backend.configs.presets import PRESETS
+    from nerf_backend.models.registry import build_model
+
+    torch.manual_seed(seed)
+    config = dataclasses.replace(PRESETS["auto"], render_alpha_threshold=0.0)
+    config = config.with_settings(grid=dataclasses.replace(config.grid, deferred_colour=True))
+    model = build_model(config, box)
+    vertices = model.field.vertices
+    model.resize((5, 6, 4))
+    with torch.no_grad():
+        for parameter in model.field.encoding_parameters():
+            parameter.normal_(0.0, 1.4)
+    model.resize(vertices)
+    model.update_occupancy()
+    assert 0.01 < model.occupancy.occupied_fraction < 0.98
+    return model.eval()

@@ -9,15 +9,13 @@ bounds of their shortcuts; a faint ray's gradients stay finite; the preset train
 
 from __future__ import annotations
 
-import dataclasses
 import json
 
 import numpy as np
 import pytest
 import torch
 
-from conftest import rays_through_box, run_python
-from nerf_backend.configs.presets import PRESETS
+from conftest import deferred_grid_model, rays_through_box, run_python
 from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.data.dataset import load_split
 from nerf_backend.fields.grid_field import GridField, GridFieldConfig
@@ -29,7 +27,6 @@ from nerf_backend.model_components.marcher import OPAQUE_TRANSMITTANCE, SKIPPED_
 from nerf_backend.model_components.occupancy import OccupancyGrid
 from nerf_backend.model_components.volume_rendering import (MIN_SHADED_WEIGHT, composite_features_packed,
                                                              shade_rays)
-from nerf_backend.models.registry import build_model
 
 BOX = SceneBounds((-1.0, -1.2, -0.8), (1.0, 1.2, 0.8))  # not a cube: the axes must not be swapped
 
@@ -201,21 +198,7 @@ def test_the_compiled_inference_compositing_adds_each_samples_weighted_features(
 
 
 def _model(seed: int = 3):
-    """The auto preset's grid model with deferred colour, random smooth density blobs and
-    appearance, occupancy updated, in inference mode."""
-    torch.manual_seed(seed)
-    config = dataclasses.replace(PRESETS["auto"], render_alpha_threshold=0.0)  # rendering skips what training does
-    config = config.with_settings(grid=dataclasses.replace(config.grid, deferred_colour=True))
-    model = build_model(config, BOX)
-    vertices = model.field.vertices
-    model.resize((5, 6, 4))
-    with torch.no_grad():
-        for parameter in model.field.encoding_parameters():
-            parameter.normal_(0.0, 1.4)
-    model.resize(vertices)
-    model.update_occupancy()
-    assert 0.01 < model.occupancy.occupied_fraction < 0.98
-    return model.eval()
+    return deferred_grid_model(BOX, seed)
 
 
 @pytest.mark.parametrize("threads", [1, 2, 3])

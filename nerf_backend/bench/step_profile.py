@@ -37,6 +37,7 @@ from ..evaluation.inference import load_trained_model
 from ..evaluation.render_views import render_image
 from ..training.trainer import TrainOptions, train
 from ..model_components.compiled_march import COMPILED_TRAINING_MARCH
+from ..model_components.marcher import COMPILED_LIT_PASS
 from .hardware import LINE_FLOATS, measure_hardware
 
 # Training stages in the order a step runs them (trainer._step and marcher.render_marched).
@@ -115,25 +116,8 @@ def profile_marched_step(dataset: Path, preset: str, steps: int, out_dir: Path, 
 
     train_items, render_items = timer.items, render_timer.items
     colour_flops = costs["colour"].flops
-    # Density at every lit sample; colour only at those the march found weighty, where it says.
-    coloured = train_items.get("coloured samples", train_items["field"])
-    field_work = train_items["field"] * costs["density"].flops + coloured * colour_flops
-    grid_lines = train_items.get("grid values", 0) / LINE_FLOATS  # the rows the step touched
-    density_flops = train_items["density pass"] * costs["density"].flops
-    # The compiled training march does the density pass inside its own pass: its reads count there.
+    train_references = _training_references(hardware, train_items, costs, model.field.BACKWARD_WORK)
     compiled_training = bool(train_items.get(COMPILED_TRAINING_MARCH))
-    backward_work = model.field.BACKWARD_WORK
-    train_references = {
-        "march": _reference(hardware, bytes_moved=train_items["march"] * MARCH_BYTES_PER_SAMPLE,
-                            flops=density_flops if compiled_training else 0.0),
-        "density pass": None if compiled_training else _reference(hardware, flops=density_flops),
-        "field": _reference(hardware, flops=field_work, lines=grid_lines),
-        # Backward: the forward's FLOPs twice over, the rows read again and their gradients
-        # written; a voxel grid's blend only writes its gradients (BACKWARD_WORK).
-        "backward": _reference(hardware, flops=backward_work * field_work, lines=backward_work * grid_lines),
-        "optimiser": _reference(hardware, bytes_moved=train_items["optimiser"] * ADAM_BYTES_PER_VALUE,
-                                lines=ADAM_ARRAYS * grid_lines),
-    }
     compiled = "spans" not in render_timer.seconds
     render_stages = COMPILED_RENDER_STAGES if compiled else RENDER_STAGES
     render_references = {
@@ -163,6 +147,31 @@ def profile_marched_step(dataset: Path, preset: str, steps: int, out_dir: Path, 
     write_json(out_dir / "step_profile.json", report)
     (out_dir / "step_profile.md").write_text(profile_markdown(report))
     return report
+
+
+def _training_references(hardware: dict, items: dict, costs: dict, backward_work: float) -> dict:
+    """Each training stage's least time for its work at the machine's measured rates."""
+    colour_flops = costs["colour"].flops
+    # Density at every lit sample; colour only at those the march found weighty, where it says.
+    coloured = items.get("coloured samples", items["field"])
+    field_work = items["field"] * costs["density"].flops + coloured * colour_flops
+    # A field's lit pass takes the density the march read: its forward reads the colour's grid alone.
+    forward_work = coloured * colour_flops if items.get(COMPILED_LIT_PASS) else field_work
+    grid_lines = items.get("grid values", 0) / LINE_FLOATS  # the rows the step touched
+    density_flops = items["density pass"] * costs["density"].flops
+    # The compiled training march does the density pass inside its own pass: its reads count there.
+    compiled_training = bool(items.get(COMPILED_TRAINING_MARCH))
+    return {
+        "march": _reference(hardware, bytes_moved=items["march"] * MARCH_BYTES_PER_SAMPLE,
+                            flops=density_flops if compiled_training else 0.0),
+        "density pass": None if compiled_training else _reference(hardware, flops=density_flops),
+        "field": _reference(hardware, flops=forward_work, lines=grid_lines),
+        # Backward: the forward's FLOPs twice over, the rows read again and their gradients
+        # written; a voxel grid's blend only writes its gradients (BACKWARD_WORK).
+        "backward": _reference(hardware, flops=backward_work * field_work, lines=backward_work * grid_lines),
+        "optimiser": _reference(hardware, bytes_moved=items["optimiser"] * ADAM_BYTES_PER_VALUE,
+                                lines=ADAM_ARRAYS * grid_lines),
+    }
 
 
 def profile_markdown(report: dict) -> str:

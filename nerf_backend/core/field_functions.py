@@ -39,3 +39,8 @@ LitSamplesFn = Callable[[Tensor, Tensor, Tensor, Tensor, Tensor], tuple[Tensor, 
 # field(points [P, 3], directions [P, 3], coloured [C]) -> (density [P], colour [C, 3]): a field's
 # density at every point and its colour only at the points ``coloured`` indexes.
 SparseColourFieldFn = Callable[[Tensor, Tensor, Tensor], tuple[Tensor, Tensor]]
+# lit_pass(lit [L], weight [L], record [L, 6], rays, steps) -> (opacity [R], depth [R], coloured
+# weight [R], composited appearance features [R, C], coloured samples): a field's training pass
+# with deferred colour over a ``LitSamplesFn``'s samples and their records, in one call (the grid
+# field's compiled pass: field_components/compiled_lit_pass.py).
+LitPassFn = Callable[[Tensor, Tensor, Tensor, int, int], tuple[Tensor, Tensor, Tensor, Tensor, int]]

@@ -32,14 +32,14 @@ import torch
 from torch import Tensor, nn
 
 from ..core.field_functions import RayColourFn
-from .compiled_grid import CHANNEL_BLOCK, _Component, _components, _rows_in_place, compiled_grid_library
+from .compiled_grid import CHANNEL_BLOCK, KernelComponent, compiled_grid_library, kernel_components, rows_in_place
 
 # colour_network.h's HIDDEN: a network of another width colours through PyTorch.
 COMPILED_WIDTH = 64
 
 
 class _ColourNetwork(ctypes.Structure):
-    _fields_ = [("grid", _Component * 3), ("per_ray", ctypes.c_void_p), ("w1", ctypes.c_void_p),
+    _fields_ = [("grid", KernelComponent * 3), ("per_ray", ctypes.c_void_p), ("w1", ctypes.c_void_p),
                 ("w2", ctypes.c_void_p), ("b2", ctypes.c_void_p), ("w3", ctypes.c_void_p), ("b3", ctypes.c_void_p),
                 ("box_min", ctypes.c_float * 3), ("scale", ctypes.c_float * 3), ("features", ctypes.c_int32),
                 ("hidden", ctypes.c_int32)]
@@ -63,11 +63,11 @@ def _grid_network(field) -> tuple[_ColourNetwork, list[Tensor]]:
     weights left to the caller), and the grid's row tables it points into (keep them alive)."""
     grid = field.appearance_grid
     with torch.no_grad():
-        tables = [_rows_in_place(p) for pair in zip(grid.planes, grid.lines) for p in pair]
+        tables = [rows_in_place(p) for pair in zip(grid.planes, grid.lines) for p in pair]
         box_min = field.box_min.float().tolist()
         scale = (2.0 / (field.box_max - field.box_min).float()).tolist()
     network = _ColourNetwork()
-    network.grid = _components([grid], tables, None, None, None, None)
+    network.grid = kernel_components([grid], tables, None, None, None, None)
     network.box_min = (ctypes.c_float * 3)(*box_min)
     network.scale = (ctypes.c_float * 3)(*scale)
     network.features, network.hidden = grid.out_dims, COMPILED_WIDTH

@@ -40,7 +40,7 @@ CHANNEL_BLOCK = 8
 MAX_GRIDS = 5
 
 
-class _Component(ctypes.Structure):
+class KernelComponent(ctypes.Structure):
     _fields_ = [("plane", ctypes.c_void_p), ("line", ctypes.c_void_p), ("features", ctypes.c_void_p),
                 ("grad", ctypes.c_void_p), ("plane_grad", ctypes.c_void_p), ("line_grad", ctypes.c_void_p),
                 ("plane_touched", ctypes.c_void_p), ("line_touched", ctypes.c_void_p),
@@ -72,7 +72,7 @@ def channel_rows(parameter: Tensor) -> Tensor:
     return parameter[0].permute(1, 2, 0).reshape(-1, channels)
 
 
-def _rows_in_place(parameter: Tensor) -> Tensor:
+def rows_in_place(parameter: Tensor) -> Tensor:
     rows = channel_rows(parameter.detach())
     return rows if rows.is_contiguous() else rows.contiguous()
 
@@ -85,9 +85,13 @@ def compiled_applies(x: Tensor, grids) -> bool:
             and compiled_grid_library() is not None)
 
 
-def _components(grids, tables: list[Tensor], features: Tensor | None, grad: Tensor | None,
-                grads: list[Tensor] | None, touched: list[Tensor | None] | None) -> ctypes.Array:
-    components = (_Component * (3 * len(grids)))()
+def kernel_components(grids, tables: list[Tensor], features: Tensor | None, grad: Tensor | None,
+                      grads: list[Tensor] | None, touched: list[Tensor | None] | None) -> ctypes.Array:
+    """The grids' components as ``vm_grid.c`` reads them (3 a grid): their ``tables`` (each
+    parameter's rows, ``grid_parameters``' order), and where given the columns of ``features``
+    or ``grad`` that are theirs, and the row buffers ``grads`` and marks ``touched`` that their
+    gradient goes into."""
+    components = (KernelComponent * (3 * len(grids)))()
     column, index = 0, 0
     for grid in grids:
         vertices, channels = grid.vertices, grid.channels
@@ -104,6 +108,7 @@ def _components(grids, tables: list[Tensor], features: Tensor | None, grad: Tens
             if grad is not None:
                 entry.grad = grad.data_ptr() + 4 * column
                 entry.row_stride = grad.shape[1]
+            if grads is not None:
                 entry.plane_grad, entry.line_grad = grads[2 * index].data_ptr(), grads[2 * index + 1].data_ptr()
                 if touched is not None:
                     plane_marks, line_marks = touched[2 * index], touched[2 * index + 1]
@@ -114,7 +119,7 @@ def _components(grids, tables: list[Tensor], features: Tensor | None, grad: Tens
     return components
 
 
-def _parameters(grids) -> list[Tensor]:
+def grid_parameters(grids) -> list[Tensor]:
     """Each grid's planes and lines, in the kernel's order: plane 0, line 0, plane 1, ..."""
     return [p for grid in grids for pair in zip(grid.planes, grid.lines) for p in pair]
 
@@ -124,10 +129,10 @@ class _ReadGrids(torch.autograd.Function):
     def forward(ctx, x: Tensor, grids, *parameters: Tensor) -> Tensor:
         library = compiled_grid_library()
         x = x.contiguous()
-        tables = [_rows_in_place(p) for p in parameters]
+        tables = [rows_in_place(p) for p in parameters]
         features = x.new_empty((x.shape[0], sum(grid.out_dims for grid in grids)))
         if x.shape[0]:
-            components = _components(grids, tables, features, None, None, None)
+            components = kernel_components(grids, tables, features, None, None, None)
             _check(library.vm_forward(components, len(components), ctypes.c_void_p(x.data_ptr()),
                                       ctypes.c_int64(x.shape[0]), ctypes.c_int64(torch.get_num_threads())))
         ctx.grids = grids
@@ -139,25 +144,36 @@ class _ReadGrids(torch.autograd.Function):
         x, *parameters = ctx.saved_tensors
         grids = ctx.grids
         grad = grad_features.float().contiguous()
-        tables = [_rows_in_place(p) for p in parameters]
-        sinks = [_gradient_sink(grid, parameters[6 * g:6 * g + 6]) for g, grid in enumerate(grids)]
-        grads, touched, returned = [], [], []
-        for grid, sink, pair in zip(grids, sinks, [parameters[6 * g:6 * g + 6] for g in range(len(grids))]):
-            if sink is not None:  # the rows go to the grid's own buffers, for SparseRowAdam
-                grads += sink.gradients
-                touched += sink.marks
-                returned += [None] * 6
-            else:
-                dense = [torch.zeros(p.shape[0], p.shape[2], p.shape[3], p.shape[1]) for p in pair]
-                grads += dense
-                touched += [None] * 6
-                returned += [d.permute(0, 3, 1, 2) for d in dense]
+        tables = [rows_in_place(p) for p in parameters]
+        grads, touched, returned = gradient_buffers(grids, parameters)
         if x.shape[0]:
-            components = _components(grids, tables, None, grad, grads, touched)
+            components = kernel_components(grids, tables, None, grad, grads, touched)
             _check(compiled_grid_library().vm_backward(components, len(components), ctypes.c_void_p(x.data_ptr()),
                                                        ctypes.c_int64(x.shape[0]),
                                                        ctypes.c_int64(torch.get_num_threads())))
         return (None, None, *returned)
+
+
+def gradient_buffers(grids, parameters: list[Tensor]) -> tuple[list[Tensor], list[Tensor | None], list[Tensor | None]]:
+    """Where the kernel adds the gradient of each of ``grids``' ``parameters`` (6 a grid, in
+    ``_parameters``' order): the rows of the grid's own buffers, marked, where the optimiser
+    updates rows (``training/sparse_adam.RowSparseAdam``), else new dense tensors; then the
+    row buffers, their marks (or None), and what autograd is to return for each parameter
+    (None where the rows took it)."""
+    grads, touched, returned = [], [], []
+    for g, grid in enumerate(grids):
+        own = parameters[6 * g:6 * g + 6]
+        sink = _gradient_sink(grid, own)
+        if sink is not None:  # the rows go to the grid's own buffers, for SparseRowAdam
+            grads += sink.gradients
+            touched += sink.marks
+            returned += [None] * 6
+        else:
+            dense = [torch.zeros(p.shape[0], p.shape[2], p.shape[3], p.shape[1]) for p in own]
+            grads += dense
+            touched += [None] * 6
+            returned += [d.permute(0, 3, 1, 2) for d in dense]
+    return grads, touched, returned
 
 
 def _check(status: int) -> None:
@@ -172,8 +188,8 @@ def density_components(grid) -> tuple[ctypes.Array, list[Tensor]] | None:
     if grid.channels % CHANNEL_BLOCK or grid.channels > 64 or compiled_grid_library() is None or any(
             p.dtype != torch.float32 or p.device.type != "cpu" for p in grid.parameters()):
         return None
-    tables = [_rows_in_place(p) for p in _parameters([grid])]
-    return _components([grid], tables, None, None, None, None), tables
+    tables = [rows_in_place(p) for p in grid_parameters([grid])]
+    return kernel_components([grid], tables, None, None, None, None), tables
 
 
 def _gradient_sink(grid, parameters):
@@ -190,4 +206,4 @@ def read_grids(grids, x: Tensor) -> Tensor | None:
     compiled path does not apply (``compiled_applies``)."""
     if not compiled_applies(x, grids):
         return None
-    return _ReadGrids.apply(x, tuple(grids), *_parameters(grids))
+    return _ReadGrids.apply(x, tuple(grids), *grid_parameters(grids))

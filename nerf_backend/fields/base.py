@@ -11,7 +11,7 @@ from typing import Callable, NamedTuple
 import torch
 from torch import Tensor, nn
 
-from ..core.field_functions import RayColourFn, ShadeFn
+from ..core.field_functions import LitPassFn, RayColourFn, ShadeFn
 from ..core.scene_bounds import SceneBounds
 
 
@@ -175,6 +175,12 @@ class MarchableField(nn.Module):
         """The field's density as the compiled training march reads it
         (``compiled_march.GridDensity``), or None where it has no such form (then the march runs
         through PyTorch)."""
+        return None
+
+    def compiled_lit_pass(self) -> LitPassFn | None:
+        """With deferred colour, the field's training pass over the compiled march's lit samples
+        and their records in one call (``LitPassFn``), or None (then ``forward`` and the
+        compositing run through PyTorch)."""
         return None
 
     def volume_activation(self) -> tuple[str, float, float] | None:

@@ -17,8 +17,11 @@ from torch import Tensor, nn
 
 from ..core.scene_bounds import SceneBounds
 from ..core.tensor_keys import values_key
+from ..core.field_functions import LitPassFn
 from ..field_components.compiled_grid import density_components, read_grids
+from ..field_components.compiled_lit_pass import lit_pass, lit_pass_applies
 from ..model_components.compiled_march import GridDensity
+from ..model_components.marcher import TRAIN_COLOURED_WEIGHT, TRAIN_RELATIVE_WEIGHT
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
 from ..field_components.grid_growth import cubic_vertices, grown_resolution, stage_of
 from .base import MarchableField, SampleCost, VertexOccupancy
@@ -190,6 +193,16 @@ class GridField(VertexOccupancy, GridAppearance, MarchableField):
         if found is None:
             return None
         return GridDensity(*found, scale=self.config.density_scale, shift=self.config.density_shift)
+
+    def compiled_lit_pass(self) -> LitPassFn | None:
+        """``MarchableField.compiled_lit_pass``: with deferred colour (not region-aware, whose
+        samples carry direction inputs too), on the CPU in float32 with a C compiler."""
+        if not self.deferred or self.region_aware or not lit_pass_applies(self.density_grid, self.appearance_grid):
+            return None
+        config, colouring = self.config, (TRAIN_COLOURED_WEIGHT, TRAIN_RELATIVE_WEIGHT)
+        return lambda lit, weight, record, rays, steps: lit_pass(
+            self.density_grid, self.appearance_grid, config.density_scale, config.density_shift, lit, weight, record,
+            rays, steps, colouring)
 
     def volume_activation(self) -> tuple[str, float, float]:
         return "softplus", self.config.density_scale, self.config.density_shift

@@ -2,16 +2,8 @@
  * backward (nerf_backend/model_components/compiled_composite.py; the PyTorch reference is
  * volume_rendering.composite_features_packed, which computes the same sums).
  *
- * Samples are packed per ray: ray r's are starts[r] .. starts[r + 1] - 1, in order along it.
- * A sample's weight is w_i = T_i (1 - exp(-σ_i δ_i)), its transmittance T_i = exp(-Σ_{j<i} σ_j δ_j)
- * with the optical depth summed in double (in float, a batch of opaque rays' sums lose a
- * translucent sample's own digits). Per ray, forward gives the opacity Σ w_i, the depth Σ w_i t_i,
- * and over the coloured samples (feature_row[i] >= 0: their row of `features`) the coloured
- * weight Σ w_i and the features composited, Σ w_i f_i.
- *
- * Backward: with g_i = dL/dw_i (from the four outputs' gradients),
- *   dL/dσ_i = δ_i (T_{i+1} g_i - Σ_{j>i} w_j g_j),   dL/df_i = w_i dL/d(Σ w f)_r,
- * the suffix sum taken in double, one backward pass a ray.
+ * Samples are packed per ray: ray r's are starts[r] .. starts[r + 1] - 1, in order along it;
+ * each ray is composited, forward and backward, by ray_composite.h (its notes give the maths).
  *
  * Threads take runs of whole rays with about as many samples each, so no two write one row:
  * no atomics. Through PyTorch the same work was a dozen passes over memory and their autograd
@@ -23,6 +15,7 @@
 #include <string.h>
 
 #include "grid_common.h"
+#include "ray_composite.h"
 
 typedef struct {
     int64_t rays;
@@ -45,31 +38,21 @@ typedef struct {
     int64_t first_ray, end_ray;
 } CompositeWork;
 
+static RaySamples samples_of(const Composite *c) {
+    RaySamples s = {c->density, c->deltas, c->t_mid, 1, c->feature_row, c->features, c->channels};
+    return s;
+}
+
 static void *forward_work(void *arg) {
     const CompositeWork *w = (const CompositeWork *)arg;
     const Composite *c = w->c;
-    const int64_t K = c->channels;
+    const RaySamples samples = samples_of(c);
     for (int64_t r = w->first_ray; r < w->end_ray; ++r) {
-        double depth_before = 0.0, opacity = 0.0, depth = 0.0, coloured = 0.0;
-        float *acc = c->accumulated + r * K;
-        memset(acc, 0, sizeof(float) * K);
-        for (int64_t i = c->starts[r]; i < c->starts[r + 1]; ++i) {
-            const double optical = (double)(c->density[i] * c->deltas[i]);
-            const float weight = (float)exp(-depth_before) * -expm1f(-c->density[i] * c->deltas[i]);
-            depth_before += optical;
-            c->weights[i] = weight;
-            opacity += weight;
-            depth += (double)weight * c->t_mid[i];
-            const int64_t row = c->feature_row[i];
-            if (row >= 0) {
-                coloured += weight;
-                const float *f = c->features + row * K;
-                for (int64_t k = 0; k < K; ++k) acc[k] += weight * f[k];
-            }
-        }
-        c->opacity[r] = (float)opacity;
-        c->depth[r] = (float)depth;
-        c->coloured_weight[r] = (float)coloured;
+        const RayTotals totals = composite_ray(&samples, c->starts[r], c->starts[r + 1], c->weights,
+                                               c->accumulated + r * c->channels);
+        c->opacity[r] = totals.opacity;
+        c->depth[r] = totals.depth;
+        c->coloured_weight[r] = totals.coloured_weight;
     }
     return NULL;
 }
@@ -77,36 +60,11 @@ static void *forward_work(void *arg) {
 static void *backward_work(void *arg) {
     const CompositeWork *w = (const CompositeWork *)arg;
     const Composite *c = w->c;
-    const int64_t K = c->channels;
-    for (int64_t r = w->first_ray; r < w->end_ray; ++r) {
-        const int64_t begin = c->starts[r], end = c->starts[r + 1];
-        const float *g_acc = c->grad_accumulated + r * K;
-        /* T_{i+1}, each sample's transmittance behind it, kept in grad_density until the
-         * reverse pass overwrites it with the gradient. */
-        double depth_before = 0.0;
-        for (int64_t i = begin; i < end; ++i) {
-            depth_before += (double)(c->density[i] * c->deltas[i]);
-            c->grad_density[i] = (float)exp(-depth_before);
-        }
-        double behind = 0.0;  /* Σ_{j>i} w_j g_j */
-        for (int64_t i = end - 1; i >= begin; --i) {
-            double g = (double)c->grad_opacity[r] + (double)c->grad_depth[r] * c->t_mid[i];
-            const int64_t row = c->feature_row[i];
-            if (row >= 0) {
-                const float *f = c->features + row * K;
-                float *g_f = c->grad_features + row * K;
-                float dot = 0.0f;
-                for (int64_t k = 0; k < K; ++k) {
-                    dot += g_acc[k] * f[k];
-                    g_f[k] = c->weights[i] * g_acc[k];
-                }
-                g += (double)c->grad_coloured_weight[r] + dot;
-            }
-            const double after = (double)c->grad_density[i];
-            c->grad_density[i] = (float)(c->deltas[i] * (after * g - behind));
-            behind += (double)c->weights[i] * g;
-        }
-    }
+    const RaySamples samples = samples_of(c);
+    for (int64_t r = w->first_ray; r < w->end_ray; ++r)
+        composite_ray_backward(&samples, c->starts[r], c->starts[r + 1], c->weights, c->grad_opacity[r],
+                               c->grad_depth[r], c->grad_coloured_weight[r], c->grad_accumulated + r * c->channels,
+                               c->grad_density, c->grad_features);
     return NULL;
 }
 

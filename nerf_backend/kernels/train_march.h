@@ -20,7 +20,11 @@
  * opaque_transmittance), sorted by ray, then along it, and each one's weight (without
  * gradients: which samples need a colour): what marcher.occupied_samples and
  * marcher.lit_samples find through tensors of every step of every ray. The field's pass with
- * gradients then runs on those. */
+ * gradients then runs on those. Where `record` is given, each lit sample's row of
+ * RECORD_WIDTH floats there holds its interval's midpoint and length along the ray, the
+ * density's pre-activation read there (density_at, before gain and shift) and the point in
+ * [-1, 1]: what the field's pass would compute again (vm_grid.c's lit pass takes them). */
+#define RECORD_WIDTH 6
 typedef struct {
     float step;
     int64_t steps;
@@ -41,6 +45,7 @@ typedef struct {
     int64_t begin, end;         /* rays */
     int64_t *lit;               /* room for (end - begin) * steps indices */
     float *weight;              /* and their weights (transmittance in front times alpha) */
+    float *record;              /* NULL, or room for RECORD_WIDTH floats a lit sample */
     int64_t found, occupied_count;
 } TrainMarchWork;
 
@@ -93,9 +98,19 @@ static void *train_march_work(void *arg) {
             }
             if (!last_occupied) continue;
             ++occupied_count;
-            const float v = s->density_gain * density_at(w->density, x) + s->density_shift;
+            const float summed = density_at(w->density, x);
+            const float v = s->density_gain * summed + s->density_shift;
             const float sigma = s->density_scale * (v > 20.0f ? v : log1pf(expf(v)));
             const float through = expf(-sigma * delta);
+            if (w->record) {
+                float *row = w->record + found * RECORD_WIDTH;
+                row[0] = t;
+                row[1] = delta;
+                row[2] = summed;
+                row[3] = x[0];
+                row[4] = x[1];
+                row[5] = x[2];
+            }
             w->weight[found] = transmittance * (1.0f - through);
             w->lit[found++] = r * s->steps + i;
             transmittance *= through;
@@ -108,10 +123,11 @@ static void *train_march_work(void *arg) {
 }
 
 /* Returns the number of lit samples written to the front of `lit` (room for rays * steps), or
- * -1 for a density it cannot read; `occupied_count` receives the density reads made. */
+ * -1 for a density it cannot read; `occupied_count` receives the density reads made. `record`
+ * (NULL, or room for rays * steps rows) receives each lit sample's row, as `weight` its weight. */
 int64_t march_train(const TrainMarch *s, const float *origins, const float *directions, const float *t_near,
                     const float *t_far, const float *offset, int64_t rays, const uint8_t *occupied, const uint8_t *blocks,
-                    const DensitySource *density, int64_t *lit, float *weight, int64_t *occupied_count,
+                    const DensitySource *density, int64_t *lit, float *weight, float *record, int64_t *occupied_count,
                     int64_t threads) {
     if (!density_readable(density)) return -1;
     threads = clamp_threads(threads, (rays + 63) / 64);
@@ -119,7 +135,8 @@ int64_t march_train(const TrainMarch *s, const float *origins, const float *dire
     for (int64_t t = 0; t < threads; ++t) {
         TrainMarchWork w = {s, origins, directions, t_near, t_far, offset, occupied, blocks, density,
                             rays * t / threads, rays * (t + 1) / threads, lit + (rays * t / threads) * s->steps,
-                            weight + (rays * t / threads) * s->steps, 0, 0};
+                            weight + (rays * t / threads) * s->steps,
+                            record ? record + (rays * t / threads) * s->steps * RECORD_WIDTH : NULL, 0, 0};
         work[t] = w;
     }
     run_all(train_march_work, work, sizeof work[0], threads);
@@ -127,6 +144,9 @@ int64_t march_train(const TrainMarch *s, const float *origins, const float *dire
     for (int64_t t = 1; t < threads; ++t) {
         memmove(lit + total, work[t].lit, (size_t)work[t].found * sizeof(int64_t));  /* after the ones before */
         memmove(weight + total, work[t].weight, (size_t)work[t].found * sizeof(float));
+        if (record)
+            memmove(record + total * RECORD_WIDTH, work[t].record,
+                    (size_t)work[t].found * RECORD_WIDTH * sizeof(float));
         total += work[t].found;
         reads += work[t].occupied_count;
     }

@@ -88,7 +88,9 @@ static void forward_sample(const Component *m, const float *x, float *out) {
 
 static inline void add_into(float *p, vec v) { store(p, load(p) + v); }
 
-static void backward_sample(const Component *m, const float *x, const float *g) {
+/* A sample's gradient into a component's rows: the incoming gradient `g` a row of its channels
+ * (`broadcast` 0), or one value for every channel (1: the lit pass's density, a sum of them). */
+static inline void backward_sample(const Component *m, const float *x, const float *g, int broadcast) {
     const SampleCorners s = corners_of(m, x);
     const int32_t C = m->channels;
     const vec w00 = splat(s.a.low_weight * s.b.low_weight), w01 = splat(s.a.low_weight * s.b.high_weight);
@@ -102,8 +104,9 @@ static void backward_sample(const Component *m, const float *x, const float *g) 
     float *gp00 = m->plane_grad + r00 * C, *gp01 = m->plane_grad + r01 * C;
     float *gp10 = m->plane_grad + r10 * C, *gp11 = m->plane_grad + r11 * C;
     float *gl0 = m->line_grad + c0 * C, *gl1 = m->line_grad + c1 * C;
+    const vec g_all = splat(g[0]);
     for (int32_t k = 0; k < C; k += BLOCK) {
-        const vec gk = load(g + k);  /* d out / d plane = g * line; d out / d line = g * plane */
+        const vec gk = broadcast ? g_all : load(g + k);  /* d out / d plane = g * line; d out / d line = g * plane */
         const vec to_plane = gk * (u0 * load(l0 + k) + u1 * load(l1 + k));
         const vec to_line = gk * (w00 * load(p00 + k) + w01 * load(p01 + k) + w10 * load(p10 + k) + w11 * load(p11 + k));
         add_into(gp00 + k, w00 * to_plane);
@@ -172,7 +175,7 @@ static void *backward_work(void *arg) {
             }
         for (int32_t j = 0; j < w->owned_count; ++j) {
             const Component *m = &w->components[w->owned[j]];
-            backward_sample(m, w->x + 3 * p, m->grad + p * m->row_stride);
+            backward_sample(m, w->x + 3 * p, m->grad + p * m->row_stride, 0);
         }
     }
     return NULL;
@@ -347,4 +350,5 @@ static inline int density_readable(const DensitySource *density) {
 }
 
 #include "train_march.h"
+#include "lit_pass.h"
 #include "colour_network.h"

@@ -163,17 +163,22 @@ def render_marched_compiled(
 # a byte a cell (16 MB) left the caches and each step waited on memory (lego at 800×800: 45 ns a
 # step, 20 ms for 1 024 rays on one core).
 TRAIN_BLOCK_SHIFT = 3
-_kept = [torch.empty(0, dtype=torch.int64), torch.empty(0)]
+_kept = [torch.empty(0, dtype=torch.int64), torch.empty(0), torch.empty(0)]
+# train_march.h's RECORD_WIDTH: a lit sample's midpoint, length, density pre-activation and point.
+RECORD_WIDTH = 6
 # bench-step's count of the rays the compiled training march marched (its density pass is inside).
 COMPILED_TRAINING_MARCH = "compiled training march"
 
 
-def _scratch(size: int) -> tuple[Tensor, Tensor]:
-    """Room for ``size`` sample indices and weights, kept between steps: fresh megabytes each
-    step cost more than the march (the kernel's pages are zeroed on first touch)."""
+def _scratch(size: int, record: bool) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Room for ``size`` sample indices, weights and (``record``) records, kept between steps:
+    fresh megabytes each step cost more than the march (the kernel's pages are zeroed on first
+    touch)."""
     if _kept[0].numel() < size:
-        _kept[:] = [torch.empty(size, dtype=torch.int64), torch.empty(size)]
-    return _kept[0][:size], _kept[1][:size]
+        _kept[:2] = [torch.empty(size, dtype=torch.int64), torch.empty(size)]
+    if record and _kept[2].shape[0] < size:
+        _kept[2] = torch.empty((size, RECORD_WIDTH))
+    return _kept[0][:size], _kept[1][:size], _kept[2][:size] if record else None
 
 
 class _TrainMarch(ctypes.Structure):
@@ -219,13 +224,17 @@ class SparseDensity:
         return cls(ctypes.pointer(grid.kernel_view()), grid, scale, shift, gain)
 
 
-def compiled_lit_samples(occupancy: OccupancyGrid, step: float, steps: int, density: GridDensity | SparseDensity):
+def compiled_lit_samples(occupancy: OccupancyGrid, step: float, steps: int, density: GridDensity | SparseDensity,
+                         record: bool = False):
     """A ``LitSamplesFn`` (core/field_functions.py) for ``render_marched``: the training march's
     lit samples and their weights (without gradients) found by ``kernels/train_march.h``'s
     ``march_train`` (built into the density's kernel) in one pass a ray, where
     ``marcher.occupied_samples`` and ``lit_samples`` build tensors of every step of every ray
     (lego at 800×800: 254 steps a ray, 1 in 10 occupied). The same samples, up to float rounding
-    at cell borders (tests/test_compiled_grid.py, tests/test_sparse_grid.py)."""
+    at cell borders (tests/test_compiled_grid.py, tests/test_sparse_grid.py). With ``record``,
+    a third output ``[L, RECORD_WIDTH]``: each sample's midpoint and length along its ray, the
+    density's pre-activation there and the point in [-1, 1] of the occupancy's box (what the
+    grid field's compiled lit pass takes: ``compiled_lit_pass.py``)."""
     library = load_kernel(density.kernel)[0]
     library.march_train.restype = ctypes.c_int64
     settings = _TrainMarch(step=step, steps=steps, cells=(ctypes.c_int64 * 3)(*occupancy.cells),
@@ -239,12 +248,12 @@ def compiled_lit_samples(occupancy: OccupancyGrid, step: float, steps: int, dens
 
     def lit(origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, offset: Tensor) -> Tensor:
         rays = origins.shape[0]
-        found, weights = _scratch(rays * steps)
+        found, weights, records = _scratch(rays * steps, record)
         reads = ctypes.c_int64(0)
         inputs = [t.float().contiguous() for t in (origins, directions, t_near, t_far, offset)]
         lit_count = library.march_train(ctypes.byref(settings), *[_pointer(t) for t in inputs], ctypes.c_int64(rays),
                                     _pointer(occupied), _pointer(blocks), density.components, _pointer(found),
-                                    _pointer(weights),
+                                    _pointer(weights), None if records is None else _pointer(records),
                                     ctypes.byref(reads),
                                     ctypes.c_int64(torch.get_num_threads()))
         if lit_count < 0:
@@ -252,6 +261,8 @@ def compiled_lit_samples(occupancy: OccupancyGrid, step: float, steps: int, dens
         with stage("density pass", items=reads.value):  # done inside the march; its reads counted here
             pass
         count(COMPILED_TRAINING_MARCH, rays)
+        if records is not None:
+            return found[:lit_count].clone(), weights[:lit_count].clone(), records[:lit_count].clone()
         return found[:lit_count].clone(), weights[:lit_count].clone()
 
     return lit

@@ -32,7 +32,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.field_functions import FieldFn, LitSamplesFn, RayColourFn, SampleDensityFn, ShadeFn, SparseColourFieldFn
+from ..core.field_functions import (FieldFn, LitPassFn, LitSamplesFn, RayColourFn, SampleDensityFn, ShadeFn,
+                                    SparseColourFieldFn)
 from ..core.stage_timer import count, stage
 from .occupancy import OccupancyGrid
 from .render_output import RenderOutput
@@ -81,6 +82,9 @@ DRAFT_STOP = RayStop(opaque_transmittance=1e-2, skipped_weight=3e-2)
 # much and the rest 3.6e-4 of a ray in all: the colour network's pass and its backward shrink 3x.
 TRAIN_COLOURED_WEIGHT = 1e-4
 TRAIN_RELATIVE_WEIGHT = 1e-2
+# bench-step's count of the rays whose field pass was a field's lit pass (``_render_lit_pass``):
+# the density was read by the march, not again in the "field" stage.
+COMPILED_LIT_PASS = "compiled lit pass"
 
 
 def march_edges(t_near: Tensor, t_far: Tensor, step: float, offset: Tensor, first: int, count: int) -> Tensor:
@@ -136,6 +140,7 @@ def render_marched(
     field_fn: FieldFn | SparseColourFieldFn, occupancy: OccupancyGrid, step: float, steps: int,
     background: Tensor | float,
     offset: Tensor | None = None, lit_fn: LitSamplesFn | None = None, shade_fn: ShadeFn | None = None,
+    lit_pass_fn: LitPassFn | None = None,
 ) -> RenderOutput:
     """Render rays marched in ``steps`` fixed steps of ``step`` from ``t_near`` (cut at
     ``t_far``), with gradients through ``field_fn``. ``lit_fn``, where given, finds the samples
@@ -143,7 +148,9 @@ def render_marched(
     of the tensors of every step below, and the rest works on those samples alone, packed per
     ray (``_render_lit``); its output then has no per-step ``weights`` or ``t_edges``. With
     ``shade_fn`` (deferred colour), ``field_fn``'s second output is appearance features, and
-    each ray's composited features are shaded once (``shade_rays``).
+    each ray's composited features are shaded once (``shade_rays``); with ``lit_pass_fn`` too
+    (``lit_fn`` then gives each sample's record), the field's pass and the compositing are that
+    one call (the grid field's compiled lit pass).
 
     Samples in empty cells are dropped, then those hidden behind opaque ones (found with
     ``density_fn``, without gradients: it may be a cheaper form of the same density); only
@@ -159,6 +166,9 @@ def render_marched(
     if offset is None:
         offset = origins.new_zeros((origins.shape[0], 1))
     if lit_fn is not None:
+        if lit_pass_fn is not None:
+            return _render_lit_pass(origins, directions, t_near, t_far, lit_fn, lit_pass_fn, steps, background,
+                                    offset, shade_fn)
         return _render_lit(origins, directions, t_near, t_far, field_fn, lit_fn, step, steps, background, offset,
                            shade_fn)
     with stage("march", items=origins.shape[0] * steps):
@@ -238,6 +248,28 @@ def _render_lit(origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tens
                 composited = composite_features_packed(*inputs)
             opacity, depth, coloured_weight, accumulated = composited
             rgb = shade_rays(accumulated, coloured_weight, opacity, directions, shade_fn)
+        rgb = rgb + (1.0 - opacity)[:, None] * background
+        return RenderOutput(rgb=rgb, depth=depth, opacity=opacity, weights=None, t_edges=None,
+                            field_samples=lit.numel())
+
+
+def _render_lit_pass(origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, lit_fn: LitSamplesFn,
+                     lit_pass_fn: LitPassFn, steps: int, background: Tensor | float, offset: Tensor,
+                     shade_fn: ShadeFn) -> RenderOutput:
+    """``_render_lit`` with deferred colour where the field's pass over the lit samples and the
+    compositing are one call (``lit_pass_fn``), from the march's record of each sample: the
+    same image and gradients (tests/test_compiled_lit_pass.py)."""
+    if shade_fn is None:
+        raise ValueError("a field's lit pass composites appearance features: it needs the field's shade_fn")
+    rays = origins.shape[0]
+    with stage("march", items=rays * steps):
+        lit, lit_weight, record = lit_fn(origins, directions, t_near, t_far, offset)
+    with stage("field", items=lit.numel()):
+        opacity, depth, coloured_weight, accumulated, coloured = lit_pass_fn(lit, lit_weight, record, rays, steps)
+        count("coloured samples", coloured)
+        count(COMPILED_LIT_PASS, rays)
+    with stage("composite", items=lit.numel()):
+        rgb = shade_rays(accumulated, coloured_weight, opacity, directions, shade_fn)
         rgb = rgb + (1.0 - opacity)[:, None] * background
         return RenderOutput(rgb=rgb, depth=depth, opacity=opacity, weights=None, t_edges=None,
                             field_samples=lit.numel())

@@ -412,12 +412,14 @@ class MarchedModel(Model):
                 return [self._render_compiled_inside(origins, directions, t_near, t_far, density, library, march)]
             return [render_marched_stopping_early(origins, directions, t_near, t_far,
                                                   ray_colour=self._ray_colour(directions), **march)]
-        offset, lit_fn = None, None
+        offset, lit_fn, lit_pass_fn = None, None, None
         if self.training:  # one random offset per ray: unbiased, and every step still covered
             offset = torch.rand((origins.shape[0], 1), generator=generator, device=origins.device,
                                 dtype=origins.dtype)
             density = self.field.compiled_density() if origins.device.type == "cpu" else None
             if density is not None:  # the march and its density pass in one compiled pass a ray
-                lit_fn = compiled_lit_samples(self.occupancy, self.step, self.samples_per_ray, density)
+                lit_pass_fn = self.field.compiled_lit_pass()  # and the field's pass and compositing in one more
+                lit_fn = compiled_lit_samples(self.occupancy, self.step, self.samples_per_ray, density,
+                                              record=lit_pass_fn is not None)
         return [render_marched(origins, directions, t_near, t_far, field_fn=self.field, offset=offset,
-                               lit_fn=lit_fn, **march)]
+                               lit_fn=lit_fn, lit_pass_fn=lit_pass_fn, **march)]
