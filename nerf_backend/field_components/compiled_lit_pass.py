@@ -39,6 +39,7 @@ from ..kernels.build import kernel_or_note
 from .compiled_grid import (CHANNEL_BLOCK, KernelComponent, gradient_buffers, grid_parameters, kernel_components,
                             rows_in_place)
 
+
 class _LitPass(ctypes.Structure):
     _fields_ = [("rays", ctypes.c_int64), ("samples", ctypes.c_int64), ("steps", ctypes.c_int64),
                 ("lit", ctypes.c_void_p), ("march_weight", ctypes.c_void_p), ("record", ctypes.c_void_p),
@@ -123,15 +124,15 @@ def lit_pass(density_grid, appearance_grid, scale: float, shift: float, lit: Ten
              record: Tensor, rays: int, steps: int,
              colouring: tuple[float, float] = (1e-4, 1e-2)) -> tuple[Tensor, Tensor, Tensor, Tensor, int] | None:
     """Each ray's opacity ``[R]``, depth ``[R]``, coloured weight ``[R]`` and composited
-    appearance features ``[R, 3·C]``, and the count of coloured samples, from the training march's lit samples (``lit [L]``, their
-    weights ``march_weight [L]`` and ``record [L, 6]``: ``compiled_lit_samples(record=True)``),
-    density ``scale · softplus(Σ density features + shift)``; differentiable with respect to
-    both grids' planes and lines. ``colouring``: which samples get a colour, as
+    appearance features ``[R, 3·C]``, and the count of coloured samples, from the training
+    march's lit samples (``lit [L]``, their weights ``march_weight [L]`` and ``record [L, 6]``:
+    ``compiled_lit_samples(record=True)``), density ``scale · softplus(Σ density features +
+    shift)``; differentiable with respect to both grids' planes and lines. ``colouring``: which samples get a colour, as
     ``marcher.colour_worthy`` chooses them (its weight floor and share of the ray's heaviest).
     None where it does not apply (``lit_pass_applies``)."""
     if not lit_pass_applies(density_grid, appearance_grid):
         return None
-    grids, told = (density_grid, appearance_grid), {}
+    grids, told = (density_grid, appearance_grid), {}  # told: the coloured count (autograd returns tensors)
     out = _LitComposite.apply(lit.contiguous(), march_weight.float().contiguous(), record.float().contiguous(),
                               rays, steps, float(scale), float(shift), colouring, told, grids,
                               *grid_parameters(grids))

@@ -1,6 +1,5 @@
 #ifndef LIT_PASS_H
 #define LIT_PASS_H
-#include "ray_composite.h"
 
 /* The grid field's training pass over the training march's lit samples with deferred colour,
  * forward and backward, in one compiled call each (nerf_backend/field_components/
@@ -26,6 +25,8 @@
  *   appearance grid's; the rows touched are marked for the sparse optimiser.
  * Threads: forward and the compositing's backward take runs of whole rays; the grids' backward
  * gives each thread whole components, as vm_backward does (no two threads add into one row). */
+
+#include "ray_composite.h"
 
 typedef struct {
     int64_t rays, samples, steps;

@@ -31,7 +31,7 @@ from ..model_components.ray_bounds import choose_ray_bounds
 from ..models.marched import FIT_MAX_KEPT, REFIT_MAX_KEPT
 from ..models.registry import model_class
 from .facts import RunFacts, RunRequest, starting_settings
-from .footprint import LONG_BUDGET_SECONDS, MIN_RESOLUTION, finest_resolution, pixel_footprint, pixel_resolution
+from .footprint import MIN_RESOLUTION, finest_resolution, pixel_footprint, pixel_resolution
 from .plan import Proposal, Rule, RunPlan, plan_run
 
 # --- measured choices ---------------------------------------------------------------------
@@ -55,14 +55,11 @@ RAYS_REASON = (
 # against per-sample colour side by side (docs/benchmarks_lego.md, "Deferred colour").
 DEFERRED_COLOUR_REASON = (
     "the appearance features composited along each ray and the colour network run once a ray: measured on lego at "
-    "800×800 on 2 CPU cores, 33.71 dB after 10 minutes against per-sample colour's 33.20 (15 478 steps against "
-    "10 139) and eval 1.04 s a view against 1.21; on the 100×100 suite after 120 s ahead on 8 of 9 scenes (+0.02 to "
-    "+0.90 dB), 0.15 dB behind on 20_specular (docs/benchmarks_lego.md, \"Deferred colour\")")
-PER_SAMPLE_COLOUR_REASON = (
-    "the colour network run on each sample: a budget of {minutes:g} minutes (at least {long:g}) grows the grid up to "
-    "its finest, where per-sample colour measured better on lego at 800×800 on 2 CPU cores after 30 minutes: "
-    "35.26 dB against deferred colour's 35.15 (31 950 steps against 35 717), eval 1.43 s a view against 1.50 "
-    "(docs/benchmarks_lego.md, \"Deferred colour\")")
+    "800×800 on 2 CPU cores (an AVX2 machine's code), 35.60 dB after 30 minutes against per-sample colour's "
+    "35.49 (69 708 steps against 41 851; the grid's training pass and compositing are one compiled "
+    "call with deferred colour) and eval 1.08 s a view against 1.79; after 10 minutes 33.71 dB against "
+    "33.20; on the 100×100 suite after 120 s ahead on 8 of 9 scenes (+0.02 to +0.90 dB), 0.15 dB behind on "
+    "20_specular (docs/benchmarks_lego.md, \"Deferred colour\")")
 # Colour shaped by the scene's materials (grid.region_appearance): metal samples see the view
 # reflected about Blender's true surface, thin-film ones that and the view (docs/benchmarks.md,
 # "Colour shaped by the scene's materials"). Glossy dielectrics keep the view (A.blend's scored
@@ -292,8 +289,8 @@ def auto_view_dependence(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
 
 
 def auto_colour(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
-    """Colour deferred to once a ray, but for time budgets long enough to grow the grid to its
-    finest (LONG_BUDGET_SECONDS): measured against per-sample colour at equal time, each way.
+    """Colour deferred to once a ray, at every budget: measured against per-sample colour at
+    equal time after 10 and 30 minutes.
 
     Example:
         >>> facts, plan = _example()
@@ -301,11 +298,6 @@ def auto_colour(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
         True
     """
     if not _auto(facts, plan):
-        return
-    seconds = plan.schedule_seconds
-    if seconds is not None and seconds >= LONG_BUDGET_SECONDS:
-        yield Proposal("colour", "grid.deferred_colour", False,
-                       PER_SAMPLE_COLOUR_REASON.format(minutes=seconds / 60, long=LONG_BUDGET_SECONDS / 60))
         return
     yield Proposal("colour", "grid.deferred_colour", True, DEFERRED_COLOUR_REASON)
 
