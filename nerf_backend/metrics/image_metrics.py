@@ -56,7 +56,7 @@ def ssim(image: np.ndarray | Tensor, reference: np.ndarray | Tensor) -> float:
         ctypes.c_int64(a.shape[0]), ctypes.c_int64(a.shape[1]), ctypes.c_int64(a.shape[2]),
         weights.ctypes.data_as(ctypes.c_void_p), ctypes.c_int64(len(weights) // 2), ctypes.c_double(SSIM_C1),
         ctypes.c_double(SSIM_C2))
-    if value < 0:  # out of memory: the library's answer stands
+    if value < 0:  # the kernel could not take it (out of memory): scikit-image computes it
         return reference_ssim(a, b)
     return float(value)
 
