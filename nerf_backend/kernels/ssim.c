@@ -8,7 +8,7 @@
  * Where scikit-image runs scipy's filter line by line (0.3 s an 800×800 RGB pair on one core,
  * most of `eval`'s scoring), this keeps 2r + 1 rows of horizontally filtered moments in a ring
  * (5 × 11 × 800 doubles, 350 kB: in the caches) and filters each output row vertically from
- * them, four columns a vector: 0.04 s, one pass over the images and none over the moments.
+ * them, four columns a vector: 0.05-0.08 s, one pass over the images and none over the moments.
  *
  * Plain C, no Python API: built by nerf_backend/kernels/build.py, called through ctypes.
  * Layout: a and b [height, width, channels] float64, contiguous (numpy's image layout: each row

@@ -41,9 +41,10 @@ SSIM_C1, SSIM_C2 = 0.01 ** 2, 0.03 ** 2
 
 def ssim(image: np.ndarray | Tensor, reference: np.ndarray | Tensor) -> float:
     """Mean SSIM of two ``H×W×C`` images in [0, 1], in float64: the compiled kernel
-    (``kernels/ssim.c``: 0.05 s an 800×800 RGB pair on one core, its conversion to float64
+    (``kernels/ssim.c``: 0.05-0.08 s an 800×800 RGB pair on one core, its conversion to float64
     included) where a C compiler is found, else scikit-image's ``structural_similarity``
-    (``reference_ssim``: 0.3 s), the same number to 1e-12 (tests/test_metrics.py)."""
+    (``reference_ssim``: 0.3-0.7 s, in turn with it), the same number to 1e-12
+    (tests/test_metrics.py)."""
     a, b = _float64_images(image, reference)
     library, _ = kernel_or_note("ssim", "SSIM through scikit-image")
     if library is None:
