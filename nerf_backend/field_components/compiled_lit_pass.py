@@ -127,8 +127,9 @@ def lit_pass(density_grid, appearance_grid, scale: float, shift: float, lit: Ten
     appearance features ``[R, 3·C]``, and the count of coloured samples, from the training
     march's lit samples (``lit [L]``, their weights ``march_weight [L]`` and ``record [L, 6]``:
     ``compiled_lit_samples(record=True)``), density ``scale · softplus(Σ density features +
-    shift)``; differentiable with respect to both grids' planes and lines. ``colouring``: which samples get a colour, as
-    ``marcher.colour_worthy`` chooses them (its weight floor and share of the ray's heaviest).
+    shift)``; differentiable with respect to both grids' planes and lines. ``colouring``: which
+    samples get a colour, as ``marcher.colour_worthy`` chooses them (its weight floor and share
+    of the ray's heaviest).
     None where it does not apply (``lit_pass_applies``)."""
     if not lit_pass_applies(density_grid, appearance_grid):
         return None

@@ -46,12 +46,11 @@ def ssim(image: np.ndarray | Tensor, reference: np.ndarray | Tensor) -> float:
     (``reference_ssim``: 0.3-0.7 s, in turn with it), the same number to 1e-12
     (tests/test_metrics.py)."""
     a, b = _float64_images(image, reference)
-    library, _ = kernel_or_note("ssim", "SSIM through scikit-image")
+    library = _ssim_kernel()
     if library is None:
         return reference_ssim(a, b)
     a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
     weights = _ssim_weights()
-    library.ssim_mean.restype = ctypes.c_double
     value = library.ssim_mean(
         a.ctypes.data_as(ctypes.c_void_p), b.ctypes.data_as(ctypes.c_void_p),
         ctypes.c_int64(a.shape[0]), ctypes.c_int64(a.shape[1]), ctypes.c_int64(a.shape[2]),
@@ -79,6 +78,15 @@ def _float64_images(image: np.ndarray | Tensor, reference: np.ndarray | Tensor) 
     if min(a.shape[:2]) < SSIM_WINDOW:
         raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}×{SSIM_WINDOW} pixels, got {a.shape[:2]}")
     return a, b
+
+
+def _ssim_kernel() -> ctypes.CDLL | None:
+    """The built ``kernels/ssim.c`` (its result type declared), or None: no C compiler, said
+    once on stderr."""
+    library, _ = kernel_or_note("ssim", "SSIM through scikit-image")
+    if library is not None:
+        library.ssim_mean.restype = ctypes.c_double
+    return library
 
 
 @functools.cache
