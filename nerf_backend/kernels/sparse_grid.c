@@ -180,4 +180,8 @@ static inline float density_at(const DensitySource *g, const float x[3]) {
 
 static inline int density_readable(const DensitySource *g) { return readable(g); }
 
+/* Nothing asked ahead: a sparse grid's corner rows are found through its index, itself a read
+ * that would have to be waited for. */
+static inline void density_prefetch(const DensitySource *g, const float x[3]) { (void)g; (void)x; }
+
 #include "train_march.h"

@@ -10,7 +10,9 @@
  * including this:
  *   DensitySource                        what the density is read from;
  *   float density_at(const DensitySource *, const float x[3])  its pre-activation at x in [-1, 1];
- *   int density_readable(const DensitySource *)                 whether it can be read at all.
+ *   int density_readable(const DensitySource *)                 whether it can be read at all;
+ *   void density_prefetch(const DensitySource *, const float x[3])  asks memory for what
+ *                                                 density_at(x) will read, without waiting.
  *
  * The march: the fixed steps of nerf_backend/model_components/marcher.py's march_edges (first
  * step shortened by the ray's offset, cut at t_far), the occupancy grid's test of each step's
@@ -46,13 +48,77 @@ typedef struct {
     int64_t *lit;               /* room for (end - begin) * steps indices */
     float *weight;              /* and their weights (transmittance in front times alpha) */
     float *record;              /* NULL, or room for RECORD_WIDTH floats a lit sample */
-    int64_t found, occupied_count;
+    int64_t found;
 } TrainMarchWork;
+
+/* Where the point t along a ray falls: its cell of the occupancy grid (`ijk`, kept inside) and
+ * its place `x` in [-1, 1] of the box; returns whether it lies in the box. */
+static inline int march_point(const TrainMarch *s, const float o[3], const float d[3], float t,
+                              const float inverse_extent[3], int64_t ijk[3], float x[3]) {
+    int inside = 1;
+    for (int axis = 0; axis < 3; ++axis) {
+        const float p = o[axis] + d[axis] * t;
+        inside &= p >= s->box_min[axis] && p <= s->box_max[axis];
+        const float unit = (p - s->box_min[axis]) * inverse_extent[axis];
+        float cell = floorf(unit * (float)s->cells[axis]);
+        if (!(cell >= 0.0f)) cell = 0.0f;
+        if (cell > (float)(s->cells[axis] - 1)) cell = (float)(s->cells[axis] - 1);
+        ijk[axis] = (int64_t)cell;
+        x[axis] = unit * 2.0f - 1.0f;
+    }
+    return inside;
+}
+
+static inline int block_occupied(const TrainMarch *s, const uint8_t *blocks, const int64_t ijk[3]) {
+    const int64_t sh = s->block_shift;
+    return blocks[((ijk[0] >> sh) * s->blocks[1] + (ijk[1] >> sh)) * s->blocks[2] + (ijk[2] >> sh)];
+}
+
+/* A ray's occupied samples wait in fours: each one's density rows are asked of memory when it
+ * is found, and the four are read and composited in order once found (up to where the ray turns
+ * opaque). Read one at a time as found, each waited on its own misses: the branches of the
+ * steps between two reads kept the processor from starting the next one's loads early (lego at
+ * 800×800: 159 k steps a batch of 2 048 rays, 56 % in empty blocks, 32 % in empty cells of
+ * occupied ones, 12 % read). */
+#define WAITING 4
+
+typedef struct {
+    float t, delta, x[3];
+    int64_t step;
+} Waiting;
+
+/* Reads the density of ray r's `count` waiting samples in order and writes each one's index,
+ * weight and record; returns 1 where the ray turned opaque (the samples after it dropped). */
+static inline int composite_waiting(TrainMarchWork *w, int64_t r, const Waiting *waiting, int count,
+                                    float *transmittance, int64_t *found) {
+    const TrainMarch *s = w->s;
+    for (int j = 0; j < count; ++j) {
+        const Waiting *sample = &waiting[j];
+        const float summed = density_at(w->density, sample->x);
+        const float v = s->density_gain * summed + s->density_shift;
+        const float sigma = s->density_scale * (v > 20.0f ? v : log1pf(expf(v)));
+        const float through = expf(-sigma * sample->delta);
+        if (w->record) {
+            float *row = w->record + *found * RECORD_WIDTH;
+            row[0] = sample->t;
+            row[1] = sample->delta;
+            row[2] = summed;
+            row[3] = sample->x[0];
+            row[4] = sample->x[1];
+            row[5] = sample->x[2];
+        }
+        w->weight[*found] = *transmittance * (1.0f - through);
+        w->lit[(*found)++] = r * s->steps + sample->step;
+        *transmittance *= through;
+        if (!(*transmittance > s->opaque_transmittance)) return 1;  /* nothing behind is lit */
+    }
+    return 0;
+}
 
 static void *train_march_work(void *arg) {
     TrainMarchWork *w = (TrainMarchWork *)arg;
     const TrainMarch *s = w->s;
-    int64_t found = 0, occupied_count = 0;
+    int64_t found = 0;
     float inverse_extent[3];
     for (int a = 0; a < 3; ++a) inverse_extent[a] = 1.0f / (s->box_max[a] - s->box_min[a]);
     for (int64_t r = w->begin; r < w->end; ++r) {
@@ -60,7 +126,8 @@ static void *train_march_work(void *arg) {
         const float near = w->t_near[r], far = w->t_far[r], offset = w->offset[r];
         float transmittance = 1.0f;
         int64_t last_cell = -1;  /* steps are half a cell: most fall in the cell the last one did */
-        int last_occupied = 0;
+        int last_occupied = 0, count = 0;
+        Waiting waiting[WAITING];
         for (int64_t i = 0; i < s->steps; ++i) {
             float a = (float)i - 1.0f + offset, b = (float)i + offset;  /* as march_edges */
             a = a > 0.0f ? a : 0.0f;
@@ -75,50 +142,26 @@ static void *train_march_work(void *arg) {
             const float delta = hi - lo;
             if (!(delta > 0.0f)) continue;
             const float t = 0.5f * (lo + hi);
-            float p[3], x[3];
-            int inside = 1;
+            Waiting *next = &waiting[count];
             int64_t ijk[3];
-            for (int axis = 0; axis < 3; ++axis) {
-                p[axis] = o[axis] + d[axis] * t;
-                inside &= p[axis] >= s->box_min[axis] && p[axis] <= s->box_max[axis];
-                float unit = (p[axis] - s->box_min[axis]) * inverse_extent[axis];
-                float cell = floorf(unit * (float)s->cells[axis]);
-                if (!(cell >= 0.0f)) cell = 0.0f;
-                if (cell > (float)(s->cells[axis] - 1)) cell = (float)(s->cells[axis] - 1);
-                ijk[axis] = (int64_t)cell;
-                x[axis] = unit * 2.0f - 1.0f;
-            }
-            if (!inside) continue;
-            const int64_t sh = s->block_shift;
-            if (!w->blocks[((ijk[0] >> sh) * s->blocks[1] + (ijk[1] >> sh)) * s->blocks[2] + (ijk[2] >> sh)]) continue;
+            if (!march_point(s, o, d, t, inverse_extent, ijk, next->x) || !block_occupied(s, w->blocks, ijk)) continue;
             const int64_t cell = (ijk[0] * s->cells[1] + ijk[1]) * s->cells[2] + ijk[2];
             if (cell != last_cell) {
                 last_cell = cell;
                 last_occupied = brick_bit(w->occupied, ijk, s->cells);
             }
             if (!last_occupied) continue;
-            ++occupied_count;
-            const float summed = density_at(w->density, x);
-            const float v = s->density_gain * summed + s->density_shift;
-            const float sigma = s->density_scale * (v > 20.0f ? v : log1pf(expf(v)));
-            const float through = expf(-sigma * delta);
-            if (w->record) {
-                float *row = w->record + found * RECORD_WIDTH;
-                row[0] = t;
-                row[1] = delta;
-                row[2] = summed;
-                row[3] = x[0];
-                row[4] = x[1];
-                row[5] = x[2];
-            }
-            w->weight[found] = transmittance * (1.0f - through);
-            w->lit[found++] = r * s->steps + i;
-            transmittance *= through;
-            if (!(transmittance > s->opaque_transmittance)) break;  /* nothing behind is lit */
+            next->t = t;
+            next->delta = delta;
+            next->step = i;
+            density_prefetch(w->density, next->x);
+            if (++count < WAITING) continue;
+            count = 0;
+            if (composite_waiting(w, r, waiting, WAITING, &transmittance, &found)) break;
         }
+        composite_waiting(w, r, waiting, count, &transmittance, &found);
     }
     w->found = found;
-    w->occupied_count = occupied_count;
     return NULL;
 }
 
@@ -136,11 +179,11 @@ int64_t march_train(const TrainMarch *s, const float *origins, const float *dire
         TrainMarchWork w = {s, origins, directions, t_near, t_far, offset, occupied, blocks, density,
                             rays * t / threads, rays * (t + 1) / threads, lit + (rays * t / threads) * s->steps,
                             weight + (rays * t / threads) * s->steps,
-                            record ? record + (rays * t / threads) * s->steps * RECORD_WIDTH : NULL, 0, 0};
+                            record ? record + (rays * t / threads) * s->steps * RECORD_WIDTH : NULL, 0};
         work[t] = w;
     }
     run_all(train_march_work, work, sizeof work[0], threads);
-    int64_t total = work[0].found, reads = work[0].occupied_count;
+    int64_t total = work[0].found;
     for (int64_t t = 1; t < threads; ++t) {
         memmove(lit + total, work[t].lit, (size_t)work[t].found * sizeof(int64_t));  /* after the ones before */
         memmove(weight + total, work[t].weight, (size_t)work[t].found * sizeof(float));
@@ -148,9 +191,8 @@ int64_t march_train(const TrainMarch *s, const float *origins, const float *dire
             memmove(record + total * RECORD_WIDTH, work[t].record,
                     (size_t)work[t].found * RECORD_WIDTH * sizeof(float));
         total += work[t].found;
-        reads += work[t].occupied_count;
     }
-    *occupied_count = reads;
+    *occupied_count = total;  /* each density read is a lit sample: the ray stops at the one it turns opaque at */
     return total;
 }
 
