@@ -3,8 +3,8 @@
 ``__builtin_prefetch`` is a hint without side effects, so a compiler may drop it. GCC 12 did
 for every call of vm_grid.c's ``prefetch_rows`` (a helper of prefetches alone, found "looping
 pure", its calls removed at -O1 and above) until it was always inlined: the forward, the
-backward, the lit pass, the colour pass and the training march asked memory for nothing ahead,
-while their comments said they did. The kernel is compiled here to assembly with the flags
+backward, the lit pass's backward and the colour pass asked memory for nothing ahead, while
+their comments said they did. The kernel is compiled here to assembly with the flags
 ``build.py`` uses, and each function that asks for rows ahead must hold a prefetch
 instruction."""
 
@@ -21,9 +21,8 @@ from nerf_backend.kernels.build import FLAGS, NATIVE_TARGET, SOURCES, c_compiler
 
 # The worker functions of vm_grid.c (and the headers it includes) that call prefetch_rows or
 # density_prefetch: forward_work and backward_work (vm_grid.c), lit_grids_backward_work
-# (lit_pass.h), feature_work and colour_work (colour_network.h), train_march_work (train_march.h).
-ASKING_AHEAD = ("forward_work", "backward_work", "lit_grids_backward_work", "feature_work", "colour_work",
-                "train_march_work")
+# (lit_pass.h), colour_work (colour_network.h), train_march_work (train_march.h).
+ASKING_AHEAD = ("forward_work", "backward_work", "lit_grids_backward_work", "colour_work", "train_march_work")
 PREFETCH = re.compile(r"^\s+(prefetch\w*|prfm)\b", re.MULTILINE)  # x86's prefetcht0/prefetchw, ARM's prfm
 LABEL = re.compile(r"^_?([A-Za-z_]\w*)(?:\.\w+)*:", re.MULTILINE)  # a function and its .cold/.part pieces
 
