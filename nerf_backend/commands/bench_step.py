@@ -26,7 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", type=Path, help="the dataset folder")
     parser.add_argument(BackendFlag.PRESET, default="paper", help="the preset to time")
     parser.add_argument("--steps", type=positive_int, default=None,
-                        help="timed iterations (default: 3 for NeRF presets, 50 for marched ones)")
+                        help="timed iterations (default: 3 for NeRF presets; for marched ones the fewest whole periods of "
+                             "the occupancy grid's refresh that make at least 50)")
     parser.add_argument("--rays", type=positive_int, default=None, help="rays per batch (default: the preset's)")
     parser.add_argument("--warmup-seconds", type=positive_float, default=60.0,
                         help="marched presets: training before the timed steps, the whole schedule laid over it")
@@ -58,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _profile_marched(args: argparse.Namespace) -> int:
     overrides = tuple(args.overrides) + ((f"rays_per_batch={args.rays}",) if args.rays else ())
-    profile_marched_step(args.dataset, args.preset, args.steps or 50, args.out, seed=args.seed,
+    profile_marched_step(args.dataset, args.preset, args.steps, args.out, seed=args.seed,
                          warmup_seconds=args.warmup_seconds, overrides=overrides, device_name=args.device,
                          overwrite=args.overwrite)
     print((args.out / "step_profile.md").read_text(), end="")
