@@ -237,3 +237,32 @@ def test_without_a_compiler_training_goes_through_pytorch_and_says_so_once(tiny_
     assert result.stderr.count("training the grids through PyTorch") == 1, result.stderr
     assert "no-such-cc" in result.stderr
     assert (tmp_path / "run" / "checkpoint.pt").is_file()
+
+
+@pytest.mark.parametrize("resolution", [24, 2], ids=["uneven sides", "one cell"])
+def test_the_training_occupancy_estimate_in_place_equals_the_vertex_densitys(resolution):
+    """GridField.occupancy_estimate in training (the dense sum activated and maxed in its own
+    memory) against VertexOccupancy's (vertex_density, then cell_corner_max): the same cell
+    maxima to the bit and the same mean to float rounding, with densities from empty to the
+    softplus's linear part; out of training the dense sum rendering caches is left unchanged."""
+    from nerf_backend.fields.base import VertexOccupancy
+
+    field = GridField(GridFieldConfig(resolution=resolution, initial_resolution=resolution, cubic_cells=resolution > 2),
+                      SceneBounds((-1.0,) * 3, (2.0, 1.0, 1.5)))
+    generator = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for parameter in field.density_grid.parameters():
+            parameter.copy_(torch.randn(parameter.shape, generator=generator) * 3.0)
+    for training in (True, False):
+        field.train(training)
+        cached = None if training else field._dense_density().clone()
+        cell_max, mean = field.occupancy_estimate()
+        expected_max, expected_mean = VertexOccupancy.occupancy_estimate(field)
+        assert cell_max.shape == expected_max.shape == tuple(n - 1 for n in field.vertices)
+        assert torch.equal(cell_max, expected_max)
+        assert mean == pytest.approx(expected_mean, rel=1e-6)
+        if cached is not None:
+            assert torch.equal(field._dense_density(), cached)
+    if resolution > 2:
+        assert len(set(field.vertices)) == 3  # a side each
+        assert float(cell_max.max()) > 10 * field.config.density_scale and float(cell_max.min()) < 1e-3

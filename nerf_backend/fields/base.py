@@ -45,6 +45,25 @@ def cell_corner_max(vertex_values: Tensor) -> Tensor:
     return torch.maximum(cell_max[:, :, :-1], cell_max[:, :, 1:])
 
 
+def cell_corner_max_reusing(vertex_values: Tensor) -> Tensor:
+    """``cell_corner_max`` of a contiguous tensor no longer needed, whose memory it overwrites:
+    one new tensor instead of three. A new volume-sized tensor is fresh pages the kernel zeroes
+    (lego's 206 × 356 × 229 vertices: a new tensor's maximum 28 ms, into one that exists 3-8 ms).
+
+    Example:
+        >>> cell_corner_max_reusing(torch.arange(27.0).view(3, 3, 3)).tolist()
+        [[[13.0, 14.0], [16.0, 17.0]], [[22.0, 23.0], [25.0, 26.0]]]
+    """
+    if not vertex_values.is_contiguous():
+        return cell_corner_max(vertex_values)
+    a, b, c = vertex_values.shape
+    first = torch.maximum(vertex_values[:-1], vertex_values[1:])  # new, contiguous
+    second = vertex_values.view(-1)[:(a - 1) * (b - 1) * c].view(a - 1, b - 1, c)
+    torch.maximum(first[:, :-1], first[:, 1:], out=second)
+    third = first.view(-1)[:(a - 1) * (b - 1) * (c - 1)].view(a - 1, b - 1, c - 1)
+    return torch.maximum(second[:, :, :-1], second[:, :, 1:], out=third)
+
+
 class MarchableField(nn.Module):
     """``density(x [P,3]) -> [P]`` and ``colour(x [P,3], d [P,3]) -> [P,3]`` in world space,
     over ``box`` (points outside it are never asked for). Built as ``Field(config, box)``
