@@ -208,7 +208,6 @@ class GridField(VertexOccupancy, GridAppearance, MarchableField):
         return "softplus", self.config.density_scale, self.config.density_shift
 
     @torch.no_grad()
-    @torch.no_grad()
     def occupancy_estimate(self) -> tuple[Tensor, float]:
         """``VertexOccupancy``'s cell maxima and mean density, in training computed in the dense
         sum's own memory: the same operations, each new volume-sized tensor fresh pages the kernel
@@ -223,6 +222,7 @@ class GridField(VertexOccupancy, GridAppearance, MarchableField):
         mean = float(density.mean())
         return cell_corner_max_reusing(density).permute(2, 1, 0), mean
 
+    @torch.no_grad()
     def vertex_density(self) -> Tensor:
         """Density at every grid vertex ``[Nx, Ny, Nz]``: within each grid cell the
         density's pre-activation is trilinear, so these bound the density in the cell."""

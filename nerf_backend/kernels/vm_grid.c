@@ -346,7 +346,7 @@ static inline float density_at(const DensitySource *density, const float x[3]) {
     return sum;
 }
 
-static inline void density_prefetch(const DensitySource *density, const float x[3]) {
+static inline __attribute__((always_inline)) void density_prefetch(const DensitySource *density, const float x[3]) {
     for (int i = 0; i < 3; ++i) prefetch_rows(&density[i], x, 0);
 }
 
