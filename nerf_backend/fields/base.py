@@ -31,37 +31,28 @@ def mlp_flops(network: nn.Module) -> int:
     return sum(2 * m.in_features * m.out_features for m in network.modules() if isinstance(m, nn.Linear))
 
 
-def cell_corner_max(vertex_values: Tensor) -> Tensor:
+def cell_corner_max(vertex_values: Tensor, overwrite: bool = False) -> Tensor:
     """The largest of each cell's 8 corner values: ``[Nx, Ny, Nz]`` vertices → ``[Nx-1, Ny-1, Nz-1]``
     cells, one axis at a time (max_pool3d's 2×2×2 window took 376 ms at 256³ on 2 CPU cores;
-    three elementwise maxima, a few ms).
+    three elementwise maxima, a few ms). ``overwrite``: the values are not needed after, and
+    where contiguous the second maximum is written into their memory and the third into the
+    first's, one new tensor instead of three (a new volume-sized tensor is fresh pages the
+    kernel zeroes: at lego's 206 × 356 × 229 vertices a maximum into a new tensor took 28 ms,
+    into one that exists 3-8 ms).
 
     Example:
         >>> cell_corner_max(torch.arange(8.0).view(2, 2, 2)).tolist()
         [[[7.0]]]
-    """
-    cell_max = torch.maximum(vertex_values[:-1], vertex_values[1:])
-    cell_max = torch.maximum(cell_max[:, :-1], cell_max[:, 1:])
-    return torch.maximum(cell_max[:, :, :-1], cell_max[:, :, 1:])
-
-
-def cell_corner_max_reusing(vertex_values: Tensor) -> Tensor:
-    """``cell_corner_max`` of a contiguous tensor no longer needed, whose memory it overwrites:
-    one new tensor instead of three. A new volume-sized tensor is fresh pages the kernel zeroes
-    (lego's 206 × 356 × 229 vertices: a new tensor's maximum 28 ms, into one that exists 3-8 ms).
-
-    Example:
-        >>> cell_corner_max_reusing(torch.arange(27.0).view(3, 3, 3)).tolist()
+        >>> cell_corner_max(torch.arange(27.0).view(3, 3, 3), overwrite=True).tolist()
         [[[13.0, 14.0], [16.0, 17.0]], [[22.0, 23.0], [25.0, 26.0]]]
     """
-    if not vertex_values.is_contiguous():
-        return cell_corner_max(vertex_values)
     a, b, c = vertex_values.shape
+    reuse = overwrite and vertex_values.is_contiguous()
     first = torch.maximum(vertex_values[:-1], vertex_values[1:])  # new, contiguous
-    second = vertex_values.view(-1)[:(a - 1) * (b - 1) * c].view(a - 1, b - 1, c)
-    torch.maximum(first[:, :-1], first[:, 1:], out=second)
-    third = first.view(-1)[:(a - 1) * (b - 1) * (c - 1)].view(a - 1, b - 1, c - 1)
-    return torch.maximum(second[:, :, :-1], second[:, :, 1:], out=third)
+    into = vertex_values.view(-1)[:(a - 1) * (b - 1) * c].view(a - 1, b - 1, c) if reuse else None
+    second = torch.maximum(first[:, :-1], first[:, 1:], out=into)
+    into = first.view(-1)[:(a - 1) * (b - 1) * (c - 1)].view(a - 1, b - 1, c - 1) if reuse else None
+    return torch.maximum(second[:, :, :-1], second[:, :, 1:], out=into)
 
 
 class MarchableField(nn.Module):

@@ -24,7 +24,7 @@ from ..model_components.compiled_march import GridDensity
 from ..model_components.marcher import TRAIN_COLOURED_WEIGHT, TRAIN_RELATIVE_WEIGHT
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
 from ..field_components.grid_growth import cubic_vertices, grown_resolution, stage_of
-from .base import MarchableField, SampleCost, VertexOccupancy, cell_corner_max_reusing
+from .base import MarchableField, SampleCost, VertexOccupancy, cell_corner_max
 from .grid_appearance import GridAppearance
 
 
@@ -220,7 +220,7 @@ class GridField(VertexOccupancy, GridAppearance, MarchableField):
         torch.ops.aten.softplus.out(density, 1.0, 20.0, out=density)  # F.softplus's beta and threshold
         density.mul_(self.config.density_scale)
         mean = float(density.mean())
-        return cell_corner_max_reusing(density).permute(2, 1, 0), mean
+        return cell_corner_max(density, overwrite=True).permute(2, 1, 0), mean
 
     @torch.no_grad()
     def vertex_density(self) -> Tensor:
