@@ -159,3 +159,95 @@ def test_the_pass_built_for_each_vector_width_the_cpu_runs_colours_as_pytorch(le
         expected = _reference(field, x, directions.index_select(0, ray))
     assert float((actual - expected).abs().max()) <= 2e-6
     assert float(expected.std()) > 0.05
+
+
+# Deferred colour's compiled shading (colour_network.h's shade_rays, CompiledShade) against
+# PyTorch's shade_fn through volume_rendering.shade_rays: the same colours within 5e-6 (float32
+# rounding of the mean's division, the encoding's sin and cos, and sums of 87 and 64 terms in
+# another order, the appearance basis folded into the first layer; with these random weights
+# and features the sums reach about 30, whose float32 step is 2e-6), rays not shaded black,
+# any ray count (tiles of 6) and thread count.
+
+def _pytorch_shade(field: GridField):
+    return lambda mean, directions: field.colour_from_grid(mean, field.direction_inputs(directions))
+
+
+def _composited(field: GridField, rays: int, seed: int):
+    """What a view's compositing leaves each ray: features Σ w·f, coloured weight Σ w (a third of
+    the rays 0: nothing coloured; some just above MIN_SHADED_WEIGHT), whole weight, direction."""
+    generator = torch.Generator().manual_seed(seed)
+    coloured = torch.rand(rays, generator=generator) * 0.9 + 0.1
+    coloured[torch.rand(rays, generator=generator) < 1 / 3] = 0.0
+    coloured[::17] = 3e-12
+    features = torch.randn(rays, field.appearance_grid.out_dims, generator=generator) * coloured[:, None]
+    weight = coloured * (1.0 + 0.05 * torch.rand(rays, generator=generator))
+    directions = torch.nn.functional.normalize(torch.randn(rays, 3, generator=generator), dim=-1)
+    return features, coloured, weight, directions
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+@pytest.mark.parametrize("rays", [1, 5, 6, 7, 4099])
+@pytest.mark.parametrize("bands", [0, 2, 4])
+def test_the_compiled_shading_equals_pytorchs(bands, rays, threads, monkeypatch):
+    from nerf_backend.model_components.volume_rendering import shade_rays
+    monkeypatch.setattr(torch, "get_num_threads", lambda: threads)
+    field = _field(deferred_colour=True, direction_frequencies=bands)
+    composited = _composited(field, rays, seed=rays + bands)
+    with torch.no_grad():
+        compiled = compiled_colour.compiled_shade(field)
+        assert compiled is not None
+        actual = shade_rays(*composited, compiled)
+        expected = shade_rays(*composited, _pytorch_shade(field))
+        mean, directions = composited[0][:3] / composited[1][:3, None].clamp(min=1e-12), composited[3][:3]
+        called = compiled(mean, directions)  # the plain ShadeFn call: weight 1, every ray shaded
+        called_expected = _pytorch_shade(field)(mean, directions)
+    assert actual.shape == (rays, 3) and actual.dtype == torch.float32
+    assert float((actual - expected).abs().max()) <= 5e-6
+    unshaded = composited[1] <= 1e-12
+    assert bool((actual[unshaded] == 0).all())
+    assert float((called - called_expected).abs().max()) <= 5e-6
+    if rays > 1000:
+        assert float(expected[~unshaded].std()) > 0.05
+
+
+def test_the_grid_field_shades_with_the_pass_at_inference_and_through_autograd_in_training():
+    field = _field(deferred_colour=True)
+    with torch.no_grad():
+        assert isinstance(field.shade_fn(), compiled_colour.CompiledShade)
+    shade = field.shade_fn()  # gradients wanted: PyTorch's, which autograd follows
+    assert not isinstance(shade, compiled_colour.CompiledShade)
+    mean = torch.randn(5, field.appearance_grid.out_dims, requires_grad=True)
+    shade(mean, torch.nn.functional.normalize(torch.randn(5, 3), dim=-1)).sum().backward()
+    assert mean.grad is not None and field.colour_mlp[0].weight.grad is not None
+
+
+@pytest.mark.parametrize("settings, why", [
+    ({"hidden_width": 32}, "a network of another width"),
+    ({"view_dependent": False}, "a network without the direction"),
+    ({"direction_frequencies": 9}, "more bands than the pass encodes"),
+])
+def test_other_networks_shade_through_pytorch(settings, why):
+    field = _field(deferred_colour=True, **settings)
+    assert compiled_colour.compiled_shade(field) is None, why
+    with torch.no_grad():
+        assert not isinstance(field.shade_fn(), compiled_colour.CompiledShade)
+    assert compiled_colour.compiled_shade(_field(deferred_colour=True).to(torch.float64)) is None
+
+
+@pytest.mark.parametrize("level", sorted(X86_LEVELS))
+def test_the_shading_built_for_each_vector_width_the_cpu_runs_shades_as_pytorch(level):
+    """Each vector width's code (its own tile of rays by outputs) shades as PyTorch does."""
+    from nerf_backend.kernels.build import load_kernel
+    from nerf_backend.model_components.volume_rendering import shade_rays
+    if not cpu_runs_x86_level(level):
+        pytest.skip(f"this CPU cannot run code for {level}")
+    library, why_not = load_kernel("vm_grid", level)
+    assert library is not None, why_not
+    library.shade_rays.restype = ctypes.c_int
+    field = _field(deferred_colour=True)
+    composited = _composited(field, 1001, seed=5)
+    with torch.no_grad():
+        compiled = compiled_colour.CompiledShade(field, compiled_colour._linear_layers(field.colour_mlp), library)
+        actual = shade_rays(*composited, compiled)
+        expected = shade_rays(*composited, _pytorch_shade(field))
+    assert float((actual - expected).abs().max()) <= 5e-6

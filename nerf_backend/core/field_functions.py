@@ -29,7 +29,10 @@ SeenColourFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
 RayColourFn = Callable[[Tensor, Tensor], Tensor]
 # shade(features [R, C], directions [R, 3]) -> [R, 3]: deferred colour (SNeRG's idea): a ray's
 # colour from its samples' appearance features composited along it (their weighted mean), seen
-# along the ray's direction: the colour network runs once a ray, not once a sample.
+# along the ray's direction: the colour network runs once a ray, not once a sample. A ShadeFn may
+# also have ``shade_rays(accumulated [R, C], coloured_weight [R], weight [R], directions [R, 3],
+# shaded [S]) -> [R, 3]``, doing ``volume_rendering.shade_rays``' whole work at once (the grid
+# field's compiled pass at inference: field_components/compiled_colour.py's CompiledShade).
 ShadeFn = Callable[[Tensor, Tensor], Tensor]
 # lit(origins [R, 3], directions [R, 3], t_near [R], t_far [R], offset [R, 1]) -> (flat indices [L]
 # (ray · steps + step) of a training march's samples in occupied cells that light still reaches,

@@ -1,6 +1,8 @@
-"""Inference's colour of packed samples in one compiled pass on the CPU
-(``kernels/colour_network.h``): the appearance grid's read and the colour network's three
-layers together, tiles of samples through each layer.
+"""Inference's colour in compiled passes on the CPU (``kernels/colour_network.h``): of packed
+samples, the appearance grid's read and the colour network's three layers together, tiles of
+samples through each layer (``compiled_ray_colour``); with deferred colour, each sample's
+features composited into its ray (``compiled_ray_features``) and each ray shaded from its mean
+features, the three layers in a matrix product's register blocks (``compiled_shade``).
 
 Through PyTorch the same colour is a compiled read of the grid, then three products (oneDNN's,
 in bfloat16 where the CPU has it) with passes over memory between them: conversions, ReLU,
@@ -146,6 +148,85 @@ def compiled_ray_features(field) -> CompiledRayFeatures | None:
         return None
     library.composite_samples.restype = ctypes.c_int
     return CompiledRayFeatures(field, library)
+
+
+class _ShadeNetwork(ctypes.Structure):
+    _fields_ = [("w1", ctypes.c_void_p), ("b1", ctypes.c_void_p), ("w2", ctypes.c_void_p), ("b2", ctypes.c_void_p),
+                ("w3", ctypes.c_void_p), ("b3", ctypes.c_void_p), ("features", ctypes.c_int32),
+                ("bands", ctypes.c_int32), ("hidden", ctypes.c_int32)]
+
+
+# colour_network.h's MAX_BANDS and MAX_FEATURES: a direction encoding of more bands, or more
+# features a ray, shade through PyTorch.
+MAX_SHADE_BANDS = 8
+MAX_SHADE_FEATURES = 1024
+
+
+class CompiledShade:
+    """Deferred colour's ``ShadeFn`` at inference, with ``shade_rays`` doing the whole of
+    ``volume_rendering.shade_rays`` in one compiled pass (``kernels/colour_network.h``): the
+    network's weights as they are when it is made (the appearance basis folded into the first
+    layer), in float32."""
+
+    def __init__(self, field, layers: list[nn.Linear], library: ctypes.CDLL) -> None:
+        first, second, third = layers
+        appearance = field.config.appearance_dims
+        with torch.no_grad():
+            grid_weight = (first.weight[:, :appearance] @ field.appearance_basis.weight).t()
+            self._kept = [torch.cat([grid_weight, first.weight[:, appearance:].t()]).contiguous(),
+                          first.bias.detach().contiguous(), second.weight.t().contiguous(),
+                          second.bias.detach().contiguous(), third.weight.detach().contiguous(),
+                          third.bias.detach().contiguous()]
+        network = _ShadeNetwork()
+        network.w1, network.b1, network.w2, network.b2, network.w3, network.b3 = [t.data_ptr() for t in self._kept]
+        network.features = field.appearance_grid.out_dims
+        network.bands = field.direction_encoding.num_frequencies
+        network.hidden = COMPILED_WIDTH
+        self._network, self._library, self._features = network, library, network.features
+
+    def __call__(self, mean: Tensor, directions: Tensor) -> Tensor:
+        ones = mean.new_ones(mean.shape[0])
+        return self.shade_rays(mean, ones, ones, directions, torch.arange(mean.shape[0]))
+
+    def shade_rays(self, accumulated: Tensor, coloured_weight: Tensor, weight: Tensor, directions: Tensor,
+                   shaded: Tensor) -> Tensor:
+        """``[R, 3]``: for each ray of ``shaded`` (indices, int64), ``weight`` times the colour of
+        ``accumulated / coloured_weight`` seen along its direction; 0 for the other rays."""
+        accumulated, coloured_weight, weight, directions = (
+            t.float().contiguous() for t in (accumulated, coloured_weight, weight, directions))
+        if accumulated.shape[1] != self._features:
+            raise ValueError(f"shade_rays: {accumulated.shape[1]} features a ray, the network takes {self._features}")
+        shaded = shaded.to(torch.int64).contiguous()
+        rgb = accumulated.new_zeros((accumulated.shape[0], 3))
+        if shaded.numel():
+            status = self._library.shade_rays(
+                ctypes.byref(self._network), *(ctypes.c_void_p(t.data_ptr()) for t in (
+                    accumulated, coloured_weight, weight, directions, shaded)),
+                ctypes.c_int64(shaded.numel()), ctypes.c_void_p(rgb.data_ptr()),
+                ctypes.c_int64(torch.get_num_threads()))
+            if status != 0:  # compiled_shade only builds it for a network the pass takes
+                raise RuntimeError(f"colour_network.h refused the call (status {status})")
+        return rgb
+
+
+def compiled_shade(field) -> CompiledShade | None:
+    """The compiled deferred shading of ``field`` (a ``GridAppearance`` with deferred colour,
+    not region-aware, whose network takes the basis's features and the direction's encoding),
+    or None where it does not apply (a network of another shape or width, parameters not
+    float32 on the CPU, no C compiler)."""
+    layers = _linear_layers(field.colour_mlp)
+    first = field.colour_mlp[0]
+    if (layers is None or not field.config.view_dependent
+            or field.direction_encoding.num_frequencies > MAX_SHADE_BANDS
+            or first.in_features != field.config.appearance_dims + field.direction_encoding.out_dims
+            or field.appearance_grid.out_dims > MAX_SHADE_FEATURES
+            or any(p.dtype != torch.float32 or p.device.type != "cpu" for p in field.parameters())):
+        return None
+    library = compiled_grid_library()
+    if library is None:
+        return None
+    library.shade_rays.restype = ctypes.c_int
+    return CompiledShade(field, layers, library)
 
 
 def colour_precision() -> int | None:

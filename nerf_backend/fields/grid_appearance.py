@@ -12,7 +12,7 @@ from torch import Tensor, nn
 from nerf_contract.dataset_layout import APPEARANCE_REGIONS
 
 from ..core.field_functions import RayColourFn, ShadeFn
-from ..field_components.compiled_colour import compiled_ray_colour, compiled_ray_features
+from ..field_components.compiled_colour import compiled_ray_colour, compiled_ray_features, compiled_shade
 from ..field_components.encodings import PositionalEncoding
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
 from ..field_components.surface_facts import SurfaceFacts
@@ -131,6 +131,10 @@ class GridAppearance:
         region-aware, of its mean direction inputs beside them)."""
         if not self.deferred:
             return None
+        if not self.region_aware and not torch.is_grad_enabled():
+            compiled = compiled_shade(self)  # inference on the CPU: the compiled pass
+            if compiled is not None:
+                return compiled
         if self.region_aware:
             width = self.appearance_grid.out_dims
             return lambda mean, directions: self.colour_from_grid(mean[:, :width],

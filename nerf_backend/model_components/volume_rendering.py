@@ -118,6 +118,9 @@ def shade_rays(accumulated: Tensor, coloured_weight: Tensor, weight: Tensor, dir
     shaded = (coloured_weight > MIN_SHADED_WEIGHT).nonzero().squeeze(1)
     if shaded.numel() == 0:  # no values at all, perhaps not even their width
         return accumulated.new_zeros((accumulated.shape[0], 3))
+    whole = getattr(shade_fn, "shade_rays", None)
+    if whole is not None:  # the same in one pass (field_functions.ShadeFn)
+        return whole(accumulated, coloured_weight, weight, directions, shaded)
     mean = accumulated.index_select(0, shaded) / coloured_weight.index_select(0, shaded)[:, None]
     colour = mean if shade_fn is None else shade_fn(mean, directions.index_select(0, shaded))
     colour = colour * weight.index_select(0, shaded)[:, None].to(colour.dtype)
