@@ -87,6 +87,31 @@ def test_rows_a_step_leaves_keep_their_values_and_decay_their_moments_when_next_
     assert torch.equal(compiled_grid.channel_rows(grid.planes[0]).detach()[untouched], start[untouched])
 
 
+@pytest.mark.parametrize("threads", [2, 3])
+def test_threads_share_the_rows_and_give_one_threads_values(threads, monkeypatch):
+    """Planes of 12 000 and 10 800 rows (the kernel splits rows over threads from 4 096 a thread
+    on), points that touch rows in every share: each thread count leaves the same values, bit
+    for bit (a row's update is its own)."""
+    torch.manual_seed(4)
+    grids = [VectorMatrixGrid(8, (120, 100, 90)) for _ in range(2)]
+    grids[1].load_state_dict(grids[0].state_dict())
+    start = grids[0].planes[0].detach().clone()
+    counts = []
+    for grid, count in zip(grids, (1, threads)):
+        monkeypatch.setattr(torch, "get_num_threads", lambda count=count: count)
+        optimiser = RowSparseAdam([{"params": list(grid.parameters()), "lr": LR}], grids=[grid], betas=BETAS, eps=EPS)
+        generator = torch.Generator().manual_seed(5)
+        for _ in range(4):
+            optimiser.zero_grad(set_to_none=True)
+            (grid(torch.rand(3000, 3, generator=generator) * 2 - 1) ** 2).sum().backward()
+            optimiser.step()
+        counts.append(optimiser.rows_updated)
+    assert counts[0] == counts[1] and counts[0] > 10_000
+    for a, b in zip(grids[0].parameters(), grids[1].parameters()):
+        assert torch.equal(a, b)
+    assert float((grids[0].planes[0].detach() - start).abs().max()) > 1e-3  # the steps moved them
+
+
 def test_a_grown_grid_trains_through_autograd_until_a_new_optimiser_attaches():
     """The trainer makes a new optimiser when the grid grows; until then the old buffers do not
     fit the new parameters, and the gradient goes to .grad (never into the old buffers)."""
