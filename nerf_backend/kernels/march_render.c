@@ -43,11 +43,12 @@ typedef struct {
 /* NaN goes to lo: a float cast to an integer must be in range (anything else is undefined). */
 static inline float clampf(float v, float lo, float hi) { return !(v >= lo) ? lo : (v > hi ? hi : v); }
 
-/* Whether the cell holding `units` (cell units, clamped to the grid; NaN to cell 0) is marked. */
-static inline int marked(const uint8_t *bricks, const float units[3], const int64_t cells[3]) {
+/* Whether the cell holding `units` (cell units, clamped to the grid; NaN to cell 0) is marked;
+ * last[axis] = cells[axis] - 1 as a float. */
+static inline int marked(const uint8_t *bricks, const float units[3], const int64_t cells[3], const float last[3]) {
     int64_t ijk[3];
     for (int axis = 0; axis < 3; ++axis)  /* clamped to the grid before the cast, NaN to 0 */
-        ijk[axis] = (int64_t)clampf(units[axis], 0.0f, (float)(cells[axis] - 1));
+        ijk[axis] = (int64_t)clampf(units[axis], 0.0f, last[axis]);
     return brick_bit(bricks, ijk, cells);
 }
 
@@ -134,12 +135,21 @@ typedef struct {
 /* One ray into the thread's region; 0 if the region is full (nothing of the ray kept). */
 static int march_ray(MarchJob *job, MarchThread *thread, int64_t r) {
     const MarchSettings *s = job->s;
-    float side[3], to_vertex[3];
+    /* What every step reads, in locals: read through s, the compiler reloaded and converted
+     * the grid's sizes at every step (a sample's int64_t store may alias s->cells). */
+    float side[3], to_vertex[3], cell_count[3], last_cell[3];
+    int64_t cells[3];
     for (int axis = 0; axis < 3; ++axis) {
         side[axis] = (s->box_max[axis] - s->box_min[axis]) / (float)s->cells[axis];
         to_vertex[axis] = (float)(s->vertices[axis] - 1) / (s->box_max[axis] - s->box_min[axis]);
+        cells[axis] = s->cells[axis];
+        cell_count[axis] = (float)cells[axis];
+        last_cell[axis] = (float)(cells[axis] - 1);
     }
-    const int64_t spans = (s->steps - 1 + s->span - 1) / s->span;
+    const float step = s->step;
+    const int64_t steps = s->steps, span = s->span;
+    const uint8_t *skip = job->skip, *occupied = job->occupied;
+    const int64_t spans = (steps - 1 + span - 1) / span;
     const int64_t end = thread->first + job->region, ray_start = thread->written;
     int64_t count = ray_start;
     const float *o = job->origins + 3 * r, *d = job->directions + 3 * r;
@@ -153,18 +163,18 @@ static int march_ray(MarchJob *job, MarchThread *thread, int64_t r) {
     int64_t looked_up = 0, read = 0;
     int stopped = 0;
     for (int64_t k = 0; k < spans && far > near && !stopped; ++k) {
-        const float span_start = (float)(k * s->span) * s->step;
+        const float span_start = (float)(k * span) * step;
         if (!(span_start < far - near)) break;
-        const float t_span = near + (span_start + 0.5f * (float)s->span * s->step);
+        const float t_span = near + (span_start + 0.5f * (float)span * step);
         float units[3];
         for (int axis = 0; axis < 3; ++axis) units[axis] = start[axis] + along[axis] * t_span;
-        if (!marked(job->skip, units, s->cells)) continue;
-        int64_t last = (k + 1) * s->span;
-        if (last > s->steps - 1) last = s->steps - 1;
-        for (int64_t u = k * s->span; u < last; ++u) {
-            float t_lo = near + (float)u * s->step;
+        if (!marked(skip, units, cells, last_cell)) continue;
+        int64_t last = (k + 1) * span;
+        if (last > steps - 1) last = steps - 1;
+        for (int64_t u = k * span; u < last; ++u) {
+            float t_lo = near + (float)u * step;
             if (t_lo > far) t_lo = far;
-            float t_hi = t_lo + s->step;
+            float t_hi = t_lo + step;
             if (t_hi > far) t_hi = far;
             const float delta = t_hi - t_lo;
             if (!(delta > 0.0f)) break;
@@ -173,9 +183,9 @@ static int march_ray(MarchJob *job, MarchThread *thread, int64_t r) {
             int inside = 1;
             for (int axis = 0; axis < 3; ++axis) {
                 units[axis] = start[axis] + along[axis] * t_mid;
-                inside &= units[axis] >= 0.0f && units[axis] <= (float)s->cells[axis];
+                inside &= units[axis] >= 0.0f && units[axis] <= cell_count[axis];
             }
-            if (!inside || !marked(job->occupied, units, s->cells)) continue;
+            if (!inside || !marked(occupied, units, cells, last_cell)) continue;
             float p[3];
             for (int axis = 0; axis < 3; ++axis) p[axis] = o[axis] + d[axis] * t_mid;
             const float sigma = density_at(s, job->volume, p, d, to_vertex);
