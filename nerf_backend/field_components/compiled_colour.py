@@ -209,11 +209,11 @@ class CompiledShade:
         return rgb
 
 
-def compiled_shade(field) -> CompiledShade | None:
-    """The compiled deferred shading of ``field`` (a ``GridAppearance`` with deferred colour,
-    not region-aware, whose network takes the basis's features and the direction's encoding),
-    or None where it does not apply (a network of another shape or width, parameters not
-    float32 on the CPU, no C compiler)."""
+def _shading_layers(field) -> list[nn.Linear] | None:
+    """The colour network's layers where the compiled shading takes ``field`` (a
+    ``GridAppearance`` whose network takes the basis's features and the direction's encoding):
+    three layers of the compiled width, the encoding's bands and the features within the
+    pass's limits, parameters float32 on the CPU; else None."""
     layers = _linear_layers(field.colour_mlp)
     first = field.colour_mlp[0]
     if (layers is None or not field.config.view_dependent
@@ -222,11 +222,138 @@ def compiled_shade(field) -> CompiledShade | None:
             or field.appearance_grid.out_dims > MAX_SHADE_FEATURES
             or any(p.dtype != torch.float32 or p.device.type != "cpu" for p in field.parameters())):
         return None
-    library = compiled_grid_library()
+    return layers
+
+
+def compiled_shade(field) -> CompiledShade | None:
+    """The compiled deferred shading of ``field`` at inference, or None where it does not apply
+    (``_shading_layers``; no C compiler)."""
+    layers = _shading_layers(field)
+    library = compiled_grid_library() if layers is not None else None
     if library is None:
         return None
     library.shade_rays.restype = ctypes.c_int
     return CompiledShade(field, layers, library)
+
+
+class _ShadeTrainingNetwork(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_void_p) for name in ("basis_t", "basis", "w1_t", "w1_a", "b1", "w2_t", "w2", "b2",
+                                                    "w3", "b3")] + [
+        (name, ctypes.c_int32) for name in ("features", "fpad", "apad", "bands", "hidden")]
+
+
+# colour_network.h's MAX_APAD: a basis of more outputs trains through PyTorch.
+MAX_TRAINING_BASIS = 64
+_VECTOR = 16  # widths padded to a multiple of the widest vector (colour_network.h's LANES: 16, 8 or 4),
+# and the floats b3's gradient takes (its B3_FLOATS)
+
+
+def _padded(n: int) -> int:
+    return -(-n // _VECTOR) * _VECTOR
+
+
+class _ShadeTrainingFunction(torch.autograd.Function):
+    """The network's forward and backward in one compiled call each (``CompiledShadeTraining``)."""
+
+    @staticmethod
+    def forward(ctx, mean, directions, basis, w1, b1, w2, b2, w3, b3, shader):  # noqa: D102 (autograd's)
+        network, kept = shader.network(basis, w1, b1, w2, b2, w3, b3)
+        mean = mean.float().contiguous()
+        directions = directions.float().contiguous()
+        rays, inputs = mean.shape[0], network.apad + shader.encoding
+        hidden1, hidden2 = mean.new_empty((rays, COMPILED_WIDTH)), mean.new_empty((rays, COMPILED_WIDTH))
+        x1, colour = mean.new_empty((rays, inputs)), mean.new_empty((rays, 3))
+        if rays:
+            shader.call("shade_training_forward", ctypes.byref(network), mean, directions, ctypes.c_int64(rays),
+                        x1, hidden1, hidden2, colour, ctypes.c_int64(torch.get_num_threads()))
+        ctx.save_for_backward(mean, x1, hidden1, hidden2, colour)
+        ctx.network, ctx.kept, ctx.shader = network, kept, shader
+        return colour
+
+    @staticmethod
+    def backward(ctx, grad_colour):  # noqa: D102 (autograd's)
+        mean, x1, hidden1, hidden2, colour = ctx.saved_tensors
+        network, shader = ctx.network, ctx.shader
+        rays, features, apad = mean.shape[0], network.features, network.apad
+        threads = torch.get_num_threads()
+        size = int(shader.library.shade_training_gradient_floats(ctypes.byref(network)))
+        sums = mean.new_zeros(size)
+        grad_mean = mean.new_empty((rays, network.fpad))  # the kernel writes every row
+        if rays:
+            scratch = mean.new_empty(max(threads - 1, 1) * size)
+            shader.call("shade_training_backward", ctypes.byref(network), mean, x1, hidden1, hidden2, colour,
+                        grad_colour.float().contiguous(), ctypes.c_int64(rays), grad_mean, sums, scratch,
+                        ctypes.c_int64(threads))
+        inputs, hidden, appearance = apad + shader.encoding, COMPILED_WIDTH, shader.appearance
+        parts, at = [], 0
+        for count in (inputs * hidden, hidden, hidden * hidden, hidden, 3 * hidden, _VECTOR, features * apad):
+            parts.append(sums[at:at + count])
+            at += count
+        g_w1_t, g_b1, g_w2_t, g_b2, g_w3, g_b3, g_basis_t = parts
+        g_w1_t = g_w1_t.view(inputs, hidden)
+        g_w1 = torch.cat([g_w1_t[:appearance], g_w1_t[apad:]]).t()
+        return (grad_mean[:, :features], None, g_basis_t.view(features, apad)[:, :appearance].t(), g_w1, g_b1,
+                g_w2_t.view(hidden, hidden).t(), g_b2, g_w3.view(3, hidden), g_b3[:3], None)
+
+
+class CompiledShadeTraining:
+    """Deferred colour's ``ShadeFn`` in training on the CPU: ``GridAppearance``'s basis and
+    network over each ray's mean features, forward and backward each one compiled call
+    (``kernels/colour_network.h``), in float32; the gradients those of PyTorch's autograd over
+    the same operations (tests/test_compiled_colour.py)."""
+
+    def __init__(self, field, library: ctypes.CDLL) -> None:
+        self._field, self.library = field, library
+        self.appearance = field.config.appearance_dims
+        self.encoding = field.direction_encoding.out_dims
+        self._bands = field.direction_encoding.num_frequencies
+
+    def __call__(self, mean: Tensor, directions: Tensor) -> Tensor:
+        field = self._field
+        first, second, third = field.colour_mlp[0], field.colour_mlp[2], field.colour_mlp[4]
+        return _ShadeTrainingFunction.apply(mean, directions, field.appearance_basis.weight, first.weight, first.bias,
+                                            second.weight, second.bias, third.weight, third.bias, self)
+
+    def network(self, basis: Tensor, w1: Tensor, b1: Tensor, w2: Tensor, b2: Tensor, w3: Tensor,
+                b3: Tensor) -> tuple[_ShadeTrainingNetwork, list[Tensor]]:
+        """The kernel's structure over this step's weights, padded and transposed as it reads
+        them, and the tensors it points into (keep them alive)."""
+        appearance, features = basis.shape
+        apad, fpad = _padded(appearance), _padded(features)
+        with torch.no_grad():
+            basis_padded = basis.new_zeros((apad, fpad))
+            basis_padded[:appearance, :features] = basis
+            w1_t = w1.new_zeros((apad + self.encoding, COMPILED_WIDTH))
+            w1_t[:appearance] = w1[:, :appearance].t()
+            w1_t[apad:] = w1[:, appearance:].t()
+            kept = [basis_padded.t()[:features].contiguous(), basis_padded, w1_t,
+                    w1_t[:apad].t().contiguous(), b1.detach().contiguous(), w2.detach().t().contiguous(),
+                    w2.detach().contiguous(), b2.detach().contiguous(), w3.detach().contiguous(),
+                    b3.detach().contiguous()]
+        network = _ShadeTrainingNetwork(*[t.data_ptr() for t in kept], features, fpad, apad, self._bands,
+                                        COMPILED_WIDTH)
+        return network, kept
+
+    def call(self, name: str, *arguments) -> None:
+        converted = [ctypes.c_void_p(a.data_ptr()) if isinstance(a, Tensor) else a for a in arguments]
+        status = getattr(self.library, name)(*converted)
+        if status != 0:  # compiled_shade_training only builds it for a network the pass takes
+            raise RuntimeError(f"colour_network.h refused {name} (status {status})")
+
+
+def compiled_shade_training(field) -> CompiledShadeTraining | None:
+    """Training's compiled deferred shading for ``field``, or None where it does not apply (as
+    ``compiled_shade``; and under autocast, whose reduced-precision products are PyTorch's)."""
+    if (_shading_layers(field) is None or field.config.appearance_dims > MAX_TRAINING_BASIS
+            or torch.is_autocast_enabled("cpu")):
+        return None
+    library = compiled_grid_library()
+    if library is None:
+        return None
+    for name in ("shade_training_forward", "shade_training_backward"):
+        getattr(library, name).restype = ctypes.c_int
+    library.shade_training_gradient_floats.restype = ctypes.c_int64
+    return CompiledShadeTraining(field, library)
 
 
 def colour_precision() -> int | None:

@@ -12,7 +12,8 @@ from torch import Tensor, nn
 from nerf_contract.dataset_layout import APPEARANCE_REGIONS
 
 from ..core.field_functions import RayColourFn, ShadeFn
-from ..field_components.compiled_colour import compiled_ray_colour, compiled_ray_features, compiled_shade
+from ..field_components.compiled_colour import (compiled_ray_colour, compiled_ray_features, compiled_shade,
+                                                compiled_shade_training)
 from ..field_components.encodings import PositionalEncoding
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
 from ..field_components.surface_facts import SurfaceFacts
@@ -131,8 +132,8 @@ class GridAppearance:
         region-aware, of its mean direction inputs beside them)."""
         if not self.deferred:
             return None
-        if not self.region_aware and not torch.is_grad_enabled():
-            compiled = compiled_shade(self)  # inference on the CPU: the compiled pass
+        if not self.region_aware:  # on the CPU, the compiled passes: inference's, or training's
+            compiled = compiled_shade(self) if not torch.is_grad_enabled() else compiled_shade_training(self)
             if compiled is not None:
                 return compiled
         if self.region_aware:

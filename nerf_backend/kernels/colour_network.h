@@ -385,23 +385,39 @@ static inline void encode_direction(const float d[3], int32_t bands, float *out)
 #define OUT_BLOCK 2
 #endif
 
-/* out[t] = relu(bias + Σ_k in[t][k] · w[k]) for the tile's SHADE_ROWS rays (w's rows HIDDEN wide). */
-static inline void dense_relu_rows(float out[SHADE_ROWS][HIDDEN], const float *in, int64_t stride, const float *w,
-                                   const float *bias, int32_t count) {
-    for (int block = 0; block < HIDDEN_VECTORS; block += OUT_BLOCK) {
+/* out[t][0, width) = bias + Σ_k in[t][k] · w[k] for the tile's SHADE_ROWS rays, through ReLU
+ * where `relu`: w's rows and bias (NULL: none) `width` floats, a whole number of vectors; in's
+ * rows in_stride apart, out's out_stride. Blocks of OUT_BLOCK vectors, then single vectors. */
+static inline void dense_rows(float *out, int64_t out_stride, const float *in, int64_t in_stride, const float *w,
+                              int32_t width, const float *bias, int32_t count, int relu) {
+    const int32_t vectors = width / LANES;
+    int32_t block = 0;
+    for (; block + OUT_BLOCK <= vectors; block += OUT_BLOCK) {
         wide sums[SHADE_ROWS][OUT_BLOCK];
         for (int t = 0; t < SHADE_ROWS; ++t)
-            for (int j = 0; j < OUT_BLOCK; ++j) sums[t][j] = load_wide(bias + (block + j) * LANES);
+            for (int j = 0; j < OUT_BLOCK; ++j)
+                sums[t][j] = bias ? load_wide(bias + (block + j) * LANES) : splat_wide(0.0f);
         for (int32_t k = 0; k < count; ++k) {
             wide row[OUT_BLOCK];
-            for (int j = 0; j < OUT_BLOCK; ++j) row[j] = load_wide(w + (int64_t)k * HIDDEN + (block + j) * LANES);
+            for (int j = 0; j < OUT_BLOCK; ++j) row[j] = load_wide(w + (int64_t)k * width + (block + j) * LANES);
             for (int t = 0; t < SHADE_ROWS; ++t) {
-                const wide x = splat_wide(in[t * stride + k]);
+                const wide x = splat_wide(in[t * in_stride + k]);
                 for (int j = 0; j < OUT_BLOCK; ++j) sums[t][j] += x * row[j];
             }
         }
         for (int t = 0; t < SHADE_ROWS; ++t)
-            for (int j = 0; j < OUT_BLOCK; ++j) store_wide(out[t] + (block + j) * LANES, relu_wide(sums[t][j]));
+            for (int j = 0; j < OUT_BLOCK; ++j)
+                store_wide(out + t * out_stride + (block + j) * LANES, relu ? relu_wide(sums[t][j]) : sums[t][j]);
+    }
+    for (; block < vectors; ++block) {
+        wide sums[SHADE_ROWS];
+        for (int t = 0; t < SHADE_ROWS; ++t) sums[t] = bias ? load_wide(bias + block * LANES) : splat_wide(0.0f);
+        for (int32_t k = 0; k < count; ++k) {
+            const wide row = load_wide(w + (int64_t)k * width + block * LANES);
+            for (int t = 0; t < SHADE_ROWS; ++t) sums[t] += splat_wide(in[t * in_stride + k]) * row;
+        }
+        for (int t = 0; t < SHADE_ROWS; ++t)
+            store_wide(out + t * out_stride + block * LANES, relu ? relu_wide(sums[t]) : sums[t]);
     }
 }
 
@@ -427,8 +443,8 @@ static void *shade_work(void *arg) {
             for (int32_t k = 0; k < F; ++k) tile[t][k] = sum[k] / coloured;
             encode_direction(w->directions + 3 * r, net->bands, tile[t] + F);
         }
-        dense_relu_rows(hidden, &tile[0][0], MAX_SHADE_INPUTS, net->w1, net->b1, inputs);
-        dense_relu_rows(second, &hidden[0][0], HIDDEN, net->w2, net->b2, HIDDEN);
+        dense_rows(&hidden[0][0], HIDDEN, &tile[0][0], MAX_SHADE_INPUTS, net->w1, HIDDEN, net->b1, inputs, 1);
+        dense_rows(&second[0][0], HIDDEN, &hidden[0][0], HIDDEN, net->w2, HIDDEN, net->b2, HIDDEN, 1);
         for (int t = 0; t < count; ++t) {
             wide h[HIDDEN_VECTORS];
             for (int j = 0; j < HIDDEN_VECTORS; ++j) h[j] = load_wide(second[t] + j * LANES);
@@ -455,6 +471,227 @@ int shade_rays(const ShadeNetwork *net, const float *accumulated, const float *c
     run_all(shade_work, work, sizeof work[0], threads);
     return 0;
 }
+
+/* Training's deferred shading, forward and backward each in one compiled call with no PyTorch
+ * autograd inside (compiled_colour.py's CompiledShadeTraining): GridAppearance's network as it
+ * trains, the appearance basis a = mean · Bᵀ (no bias), then the three layers over [a, the
+ * direction's encoding], the sigmoid. Through PyTorch a step's 2 048 rays took some thirty
+ * operators and their autograd records. Widths are padded to whole vectors with zeros: APAD
+ * the basis's outputs, FPAD the features; forward keeps each ray's layer inputs for backward. */
+typedef struct {
+    const float *basis_t;   /* [features, apad]: Bᵀ */
+    const float *basis;     /* [apad, fpad]: B, the features' gradient from the basis's */
+    const float *w1_t;      /* [apad + encoding, HIDDEN]: W1ᵀ, the basis's rows (zero past its
+                               outputs), then the encoding's */
+    const float *w1_a;      /* [HIDDEN, apad]: W1's basis columns, the basis's gradient from the first layer's */
+    const float *b1;        /* [HIDDEN] */
+    const float *w2_t;      /* [HIDDEN, HIDDEN]: W2ᵀ */
+    const float *w2;        /* [HIDDEN, HIDDEN]: W2 */
+    const float *b2;        /* [HIDDEN] */
+    const float *w3;        /* [3, HIDDEN] */
+    const float *b3;        /* [3] */
+    int32_t features, fpad, apad, bands, hidden;
+} ShadeTraining;
+
+/* A thread's gradient sums, one after the other in one buffer: W1ᵀ's, b1's, W2ᵀ's, b2's, W3's,
+ * b3's (B3_FLOATS, whatever the vector width) and Bᵀ's. */
+#define B3_FLOATS 16
+static int64_t shade_gradient_floats(const ShadeTraining *net) {
+    const int64_t inputs = net->apad + 3 * (1 + 2 * net->bands);
+    return inputs * HIDDEN + HIDDEN + HIDDEN * HIDDEN + HIDDEN + 3 * HIDDEN + B3_FLOATS + (int64_t)net->features * net->apad;
+}
+
+/* g[k][0, width) += Σ_t in[t][k] · dz[t][0, width) for k < count: a layer's weight gradient over a
+ * tile's rays, in the blocks dense_rows uses (the tile's dz in registers). */
+static inline void outer_accumulate(float *g, int32_t width, const float *in, int64_t in_stride, int32_t count,
+                                    const float *dz, int64_t dz_stride) {
+    const int32_t vectors = width / LANES;
+    int32_t block = 0;
+    for (; block + OUT_BLOCK <= vectors; block += OUT_BLOCK) {
+        wide d[SHADE_ROWS][OUT_BLOCK];
+        for (int t = 0; t < SHADE_ROWS; ++t)
+            for (int j = 0; j < OUT_BLOCK; ++j) d[t][j] = load_wide(dz + t * dz_stride + (block + j) * LANES);
+        for (int32_t k = 0; k < count; ++k) {
+            float *row = g + (int64_t)k * width + block * LANES;
+            wide sums[OUT_BLOCK];
+            for (int j = 0; j < OUT_BLOCK; ++j) sums[j] = load_wide(row + j * LANES);
+            for (int t = 0; t < SHADE_ROWS; ++t) {
+                const wide x = splat_wide(in[t * in_stride + k]);
+                for (int j = 0; j < OUT_BLOCK; ++j) sums[j] += x * d[t][j];
+            }
+            for (int j = 0; j < OUT_BLOCK; ++j) store_wide(row + j * LANES, sums[j]);
+        }
+    }
+    for (; block < vectors; ++block) {
+        wide d[SHADE_ROWS];
+        for (int t = 0; t < SHADE_ROWS; ++t) d[t] = load_wide(dz + t * dz_stride + block * LANES);
+        for (int32_t k = 0; k < count; ++k) {
+            float *row = g + (int64_t)k * width + block * LANES;
+            wide sum = load_wide(row);
+            for (int t = 0; t < SHADE_ROWS; ++t) sum += splat_wide(in[t * in_stride + k]) * d[t];
+            store_wide(row, sum);
+        }
+    }
+}
+
+/* A tile's rows of src ([rays][width] floats, rows `stride` apart), the last repeated past `count`. */
+static inline void tile_rows(float *dst, int64_t dst_stride, const float *src, int64_t stride, int64_t first,
+                             int64_t count, int32_t width) {
+    for (int t = 0; t < SHADE_ROWS; ++t)
+        memcpy(dst + t * dst_stride, src + (first + (t < count ? t : count - 1)) * stride, sizeof(float) * width);
+}
+
+#define MAX_APAD 64
+#define MAX_TRAIN_INPUTS (MAX_APAD + 3 * (1 + 2 * MAX_BANDS))
+#define MAX_FPAD (MAX_FEATURES + 16)
+
+typedef struct {
+    const ShadeTraining *net;
+    const float *mean, *directions, *grad_colour;
+    float *inputs, *hidden1, *hidden2, *colour;  /* forward's outputs, backward's inputs */
+    float *grad_mean;                             /* [rays, fpad] */
+    float *gradients;                             /* this thread's sums (shade_gradient_floats) */
+    int64_t begin, end;
+} ShadeTrainingWork;
+
+static void *shade_training_forward_work(void *arg) {
+    const ShadeTrainingWork *w = (const ShadeTrainingWork *)arg;
+    const ShadeTraining *net = w->net;
+    const int32_t F = net->features, A = net->apad, inputs = A + 3 * (1 + 2 * net->bands);
+    float mean[SHADE_ROWS][MAX_FPAD], x1[SHADE_ROWS][MAX_TRAIN_INPUTS];
+    float h1[SHADE_ROWS][HIDDEN], h2[SHADE_ROWS][HIDDEN];
+    for (int64_t first = w->begin; first < w->end; first += SHADE_ROWS) {
+        const int64_t count = w->end - first < SHADE_ROWS ? w->end - first : SHADE_ROWS;
+        tile_rows(&mean[0][0], MAX_FPAD, w->mean, F, first, count, F);
+        dense_rows(&x1[0][0], MAX_TRAIN_INPUTS, &mean[0][0], MAX_FPAD, net->basis_t, A, NULL, F, 0);
+        for (int t = 0; t < SHADE_ROWS; ++t)
+            encode_direction(w->directions + 3 * (first + (t < count ? t : count - 1)), net->bands, x1[t] + A);
+        dense_rows(&h1[0][0], HIDDEN, &x1[0][0], MAX_TRAIN_INPUTS, net->w1_t, HIDDEN, net->b1, inputs, 1);
+        dense_rows(&h2[0][0], HIDDEN, &h1[0][0], HIDDEN, net->w2_t, HIDDEN, net->b2, HIDDEN, 1);
+        for (int t = 0; t < count; ++t) {
+            const int64_t r = first + t;
+            wide h[HIDDEN_VECTORS];
+            for (int j = 0; j < HIDDEN_VECTORS; ++j) h[j] = load_wide(h2[t] + j * LANES);
+            for (int c = 0; c < 3; ++c) w->colour[3 * r + c] = colour_channel(h, net->w3, net->b3[c], c);
+            memcpy(w->inputs + r * inputs, x1[t], sizeof(float) * inputs);
+            memcpy(w->hidden1 + r * HIDDEN, h1[t], sizeof h1[t]);
+            memcpy(w->hidden2 + r * HIDDEN, h2[t], sizeof h2[t]);
+        }
+    }
+    return NULL;
+}
+
+static void *shade_training_backward_work(void *arg) {
+    const ShadeTrainingWork *w = (const ShadeTrainingWork *)arg;
+    const ShadeTraining *net = w->net;
+    const int32_t F = net->features, A = net->apad, FP = net->fpad, inputs = A + 3 * (1 + 2 * net->bands);
+    float *g_w1_t = w->gradients, *g_b1 = g_w1_t + (int64_t)inputs * HIDDEN, *g_w2_t = g_b1 + HIDDEN;
+    float *g_b2 = g_w2_t + HIDDEN * HIDDEN, *g_w3 = g_b2 + HIDDEN, *g_b3 = g_w3 + 3 * HIDDEN, *g_basis_t = g_b3 + B3_FLOATS;
+    float mean[SHADE_ROWS][MAX_FPAD], x1[SHADE_ROWS][MAX_TRAIN_INPUTS];
+    float h1[SHADE_ROWS][HIDDEN], h2[SHADE_ROWS][HIDDEN], dz2[SHADE_ROWS][HIDDEN], dz1[SHADE_ROWS][HIDDEN];
+    float da[SHADE_ROWS][MAX_APAD], dmean[SHADE_ROWS][MAX_FPAD];
+    for (int64_t first = w->begin; first < w->end; first += SHADE_ROWS) {
+        const int64_t count = w->end - first < SHADE_ROWS ? w->end - first : SHADE_ROWS;
+        tile_rows(&mean[0][0], MAX_FPAD, w->mean, F, first, count, F);
+        tile_rows(&x1[0][0], MAX_TRAIN_INPUTS, w->inputs, inputs, first, count, inputs);
+        tile_rows(&h1[0][0], HIDDEN, w->hidden1, HIDDEN, first, count, HIDDEN);
+        tile_rows(&h2[0][0], HIDDEN, w->hidden2, HIDDEN, first, count, HIDDEN);
+        /* Through the sigmoid and the third layer; a repeated ray past `count` carries nothing. */
+        for (int t = 0; t < SHADE_ROWS; ++t) {
+            wide dh[HIDDEN_VECTORS];
+            for (int j = 0; j < HIDDEN_VECTORS; ++j) dh[j] = splat_wide(0.0f);
+            for (int c = 0; c < 3 && t < count; ++c) {
+                const int64_t r = first + t;
+                const float s = w->colour[3 * r + c], dz = w->grad_colour[3 * r + c] * s * (1.0f - s);
+                g_b3[c] += dz;
+                for (int j = 0; j < HIDDEN_VECTORS; ++j) {
+                    const wide x = splat_wide(dz);
+                    store_wide(g_w3 + c * HIDDEN + j * LANES, load_wide(g_w3 + c * HIDDEN + j * LANES) + x * load_wide(h2[t] + j * LANES));
+                    dh[j] += x * load_wide(net->w3 + c * HIDDEN + j * LANES);
+                }
+            }
+            for (int j = 0; j < HIDDEN_VECTORS; ++j) {  /* through the second ReLU: h2 > 0 where it passed */
+                const wide kept = (wide)((wide_mask)dh[j] & (load_wide(h2[t] + j * LANES) > splat_wide(0.0f)));
+                store_wide(dz2[t] + j * LANES, kept);
+            }
+        }
+        for (int t = 0; t < SHADE_ROWS; ++t)
+            for (int j = 0; j < HIDDEN_VECTORS; ++j)
+                store_wide(g_b2 + j * LANES, load_wide(g_b2 + j * LANES) + load_wide(dz2[t] + j * LANES));
+        outer_accumulate(g_w2_t, HIDDEN, &h1[0][0], HIDDEN, HIDDEN, &dz2[0][0], HIDDEN);
+        dense_rows(&dz1[0][0], HIDDEN, &dz2[0][0], HIDDEN, net->w2, HIDDEN, NULL, HIDDEN, 0);
+        for (int t = 0; t < SHADE_ROWS; ++t)
+            for (int j = 0; j < HIDDEN_VECTORS; ++j) {  /* through the first ReLU */
+                const wide kept = (wide)((wide_mask)load_wide(dz1[t] + j * LANES) &
+                                         (load_wide(h1[t] + j * LANES) > splat_wide(0.0f)));
+                store_wide(dz1[t] + j * LANES, kept);
+                store_wide(g_b1 + j * LANES, load_wide(g_b1 + j * LANES) + kept);
+            }
+        outer_accumulate(g_w1_t, HIDDEN, &x1[0][0], MAX_TRAIN_INPUTS, inputs, &dz1[0][0], HIDDEN);
+        dense_rows(&da[0][0], MAX_APAD, &dz1[0][0], HIDDEN, net->w1_a, A, NULL, HIDDEN, 0);
+        outer_accumulate(g_basis_t, A, &mean[0][0], MAX_FPAD, F, &da[0][0], MAX_APAD);
+        dense_rows(&dmean[0][0], MAX_FPAD, &da[0][0], MAX_APAD, net->basis, FP, NULL, A, 0);
+        for (int t = 0; t < count; ++t) memcpy(w->grad_mean + (first + t) * FP, dmean[t], sizeof(float) * FP);
+    }
+    return NULL;
+}
+
+static int shade_training_checked(const ShadeTraining *net) {
+    if (net->hidden != HIDDEN || net->features < 1 || net->fpad > MAX_FPAD || net->fpad % LANES
+        || net->fpad < net->features) return -1;
+    if (net->apad < LANES || net->apad > MAX_APAD || net->apad % LANES || net->bands < 0 || net->bands > MAX_BANDS)
+        return -2;
+    return 0;
+}
+
+static int64_t shade_training_threads(int64_t threads, int64_t rays) {
+    return clamp_threads(threads, (rays + 511) / 512);
+}
+
+/* Forward: colour [rays, 3] (the sigmoid's, before any weight) of each ray's mean features
+ * [rays, features] seen along directions [rays, 3]; inputs [rays, apad + encoding], hidden1 and
+ * hidden2 [rays, HIDDEN] kept for backward. */
+int shade_training_forward(const ShadeTraining *net, const float *mean, const float *directions, int64_t rays,
+                           float *inputs, float *hidden1, float *hidden2, float *colour, int64_t threads) {
+    const int status = shade_training_checked(net);
+    if (status) return status;
+    threads = shade_training_threads(threads, rays);
+    ShadeTrainingWork work[MAX_THREADS];
+    for (int64_t t = 0; t < threads; ++t) {
+        ShadeTrainingWork item = {net, mean, directions, NULL, inputs, hidden1, hidden2, colour, NULL, NULL,
+                                  rays * t / threads, rays * (t + 1) / threads};
+        work[t] = item;
+    }
+    run_all(shade_training_forward_work, work, sizeof work[0], threads);
+    return 0;
+}
+
+/* Backward from grad_colour [rays, 3]: grad_mean [rays, fpad], and the parameters' gradients
+ * summed into gradients (shade_gradient_floats(net) floats, zero on entry: W1ᵀ, b1, W2ᵀ, b2,
+ * W3, b3 in B3_FLOATS, Bᵀ); scratch holds (threads - 1) more such sums. */
+int shade_training_backward(const ShadeTraining *net, const float *mean, const float *inputs, const float *hidden1,
+                            const float *hidden2, const float *colour, const float *grad_colour, int64_t rays,
+                            float *grad_mean, float *gradients, float *scratch, int64_t threads) {
+    const int status = shade_training_checked(net);
+    if (status) return status;
+    threads = shade_training_threads(threads, rays);
+    const int64_t size = shade_gradient_floats(net);
+    ShadeTrainingWork work[MAX_THREADS];
+    for (int64_t t = 0; t < threads; ++t) {
+        float *sums = t == 0 ? gradients : scratch + (t - 1) * size;
+        if (t > 0) memset(sums, 0, sizeof(float) * size);
+        ShadeTrainingWork item = {net, mean, NULL, grad_colour, (float *)inputs, (float *)hidden1, (float *)hidden2,
+                                  (float *)colour, grad_mean, sums, rays * t / threads, rays * (t + 1) / threads};
+        work[t] = item;
+    }
+    run_all(shade_training_backward_work, work, sizeof work[0], threads);
+    for (int64_t t = 1; t < threads; ++t)
+        for (int64_t i = 0; i < size; ++i) gradients[i] += scratch[(t - 1) * size + i];
+    return 0;
+}
+
+/* The floats shade_training_backward's gradients hold (its scratch: that times threads - 1). */
+int64_t shade_training_gradient_floats(const ShadeTraining *net) { return shade_gradient_floats(net); }
 
 /* 16 where the wide layers multiply in bfloat16, 32 where in float32. */
 int colour_precision(void) { return COLOUR_BF16 ? 16 : 32; }
