@@ -138,15 +138,24 @@ def test_nerf_kernel_target_builds_every_kernel_for_that_level(monkeypatch):
     assert load_kernel("vm_grid")[0] is not chosen[0]  # the running CPU's own build
 
 
-@pytest.mark.parametrize("level", sorted(X86_LEVELS))
-def test_the_pass_built_for_each_vector_width_the_cpu_runs_colours_as_pytorch(level):
-    """Each vector width's code (conftest's X86_LEVELS) colours as PyTorch does."""
+def _library_for(level: str) -> ctypes.CDLL:
+    """The grid kernel built for ``-march=level`` (skipped where this CPU cannot run it), with
+    the return types the passes' callers give it."""
     from nerf_backend.kernels.build import load_kernel
     if not cpu_runs_x86_level(level):
         pytest.skip(f"this CPU cannot run code for {level}")
     library, why_not = load_kernel("vm_grid", level)
     assert library is not None, why_not
-    library.colour_samples.restype = ctypes.c_int
+    for name in ("colour_samples", "shade_rays", "shade_training_forward", "shade_training_backward"):
+        getattr(library, name).restype = ctypes.c_int
+    library.shade_training_gradient_floats.restype = ctypes.c_int64
+    return library
+
+
+@pytest.mark.parametrize("level", sorted(X86_LEVELS))
+def test_the_pass_built_for_each_vector_width_the_cpu_runs_colours_as_pytorch(level):
+    """Each vector width's code (conftest's X86_LEVELS) colours as PyTorch does."""
+    library = _library_for(level)
     field = _field()
     generator = torch.Generator().manual_seed(11)
     directions = torch.nn.functional.normalize(torch.randn(37, 3, generator=generator), dim=-1)
@@ -235,16 +244,17 @@ def test_other_networks_shade_through_pytorch(settings, why):
 
 
 @pytest.mark.parametrize("level", sorted(X86_LEVELS))
-def test_the_shading_built_for_each_vector_width_the_cpu_runs_shades_as_pytorch(level):
-    """Each vector width's code (its own tile of rays by outputs) shades as PyTorch does."""
-    from nerf_backend.kernels.build import load_kernel
+def test_the_shadings_built_for_each_vector_width_the_cpu_runs_shade_and_train_as_pytorch(level):
+    """Each vector width's code (its own tile of rays by outputs) shades as PyTorch does, and
+    trains with autograd's gradients."""
     from nerf_backend.model_components.volume_rendering import shade_rays
-    if not cpu_runs_x86_level(level):
-        pytest.skip(f"this CPU cannot run code for {level}")
-    library, why_not = load_kernel("vm_grid", level)
-    assert library is not None, why_not
-    library.shade_rays.restype = ctypes.c_int
+    library = _library_for(level)
     field = _field(deferred_colour=True)
+    case = _training_case(field, 999, seed=6)
+    _, grad_mean, grads = _gradients(field, compiled_colour.CompiledShadeTraining(field, library), *case)
+    _, expected_mean, expected_grads = _gradients(field, _pytorch_shade(field), *case)
+    for actual, reference in [(grad_mean, expected_mean)] + [(grads[n], expected_grads[n]) for n in expected_grads]:
+        assert bool(((actual - reference).abs() <= 1e-5 * float(reference.abs().max()) + 2e-5 * reference.abs()).all())
     composited = _composited(field, 1001, seed=5)
     with torch.no_grad():
         compiled = compiled_colour.CompiledShade(field, compiled_colour._linear_layers(field.colour_mlp), library)
