@@ -266,3 +266,26 @@ def test_the_training_occupancy_estimate_in_place_equals_the_vertex_densitys(res
     if resolution > 2:
         assert len(set(field.vertices)) == 3  # a side each
         assert float(cell_max.max()) > 10 * field.config.density_scale and float(cell_max.min()) < 1e-3
+
+
+@pytest.mark.parametrize("resolution", [24, 2], ids=["uneven sides", "one cell"])
+def test_renderings_cell_maxima_from_the_sums_maxima_equal_the_vertex_densitys(resolution):
+    """GridField.cell_max_density (the dense sum's cell maxima, then only they activated)
+    against VertexOccupancy's (every vertex activated, then the maxima): the same cell maxima to
+    float32 rounding (softplus is increasing, to within its own last bit), densities from empty
+    to softplus's linear part; the dense sum rendering caches left unchanged."""
+    from nerf_backend.fields.base import VertexOccupancy
+
+    field = GridField(GridFieldConfig(resolution=resolution, initial_resolution=resolution, cubic_cells=resolution > 2),
+                      SceneBounds((-1.0,) * 3, (2.0, 1.0, 1.5))).eval()
+    generator = torch.Generator().manual_seed(4)
+    with torch.no_grad():
+        for parameter in field.density_grid.parameters():
+            parameter.copy_(torch.randn(parameter.shape, generator=generator) * 3.0)
+    cached = field._dense_density().clone()
+    cell_max, expected = field.cell_max_density(), VertexOccupancy.cell_max_density(field)
+    assert cell_max.shape == expected.shape == tuple(n - 1 for n in field.vertices)
+    assert torch.allclose(cell_max, expected, rtol=2e-7, atol=0)
+    assert torch.equal(field._dense_density(), cached)
+    if resolution > 2:
+        assert float(cell_max.max()) > 10 * field.config.density_scale and float(cell_max.min()) < 1e-3
