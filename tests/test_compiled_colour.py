@@ -243,26 +243,6 @@ def test_other_networks_shade_through_pytorch(settings, why):
     assert compiled_colour.compiled_shade(_field(deferred_colour=True).to(torch.float64)) is None
 
 
-@pytest.mark.parametrize("level", sorted(X86_LEVELS))
-def test_the_shadings_built_for_each_vector_width_the_cpu_runs_shade_and_train_as_pytorch(level):
-    """Each vector width's code (its own tile of rays by outputs) shades as PyTorch does, and
-    trains with autograd's gradients."""
-    from nerf_backend.model_components.volume_rendering import shade_rays
-    library = _library_for(level)
-    field = _field(deferred_colour=True)
-    case = _training_case(field, 999, seed=6)
-    _, grad_mean, grads = _gradients(field, compiled_colour.CompiledShadeTraining(field, library), *case)
-    _, expected_mean, expected_grads = _gradients(field, _pytorch_shade(field), *case)
-    for actual, reference in [(grad_mean, expected_mean)] + [(grads[n], expected_grads[n]) for n in expected_grads]:
-        assert bool(((actual - reference).abs() <= 1e-5 * float(reference.abs().max()) + 2e-5 * reference.abs()).all())
-    composited = _composited(field, 1001, seed=5)
-    with torch.no_grad():
-        compiled = compiled_colour.CompiledShade(field, compiled_colour._linear_layers(field.colour_mlp), library)
-        actual = shade_rays(*composited, compiled)
-        expected = shade_rays(*composited, _pytorch_shade(field))
-    assert float((actual - expected).abs().max()) <= 5e-6
-
-
 # Training's compiled shading (CompiledShadeTraining: the basis and the network forward and
 # backward in one call each) against PyTorch's autograd over the same network: the colour
 # within 5e-6 and every gradient (the mean features' and each parameter's) within 1e-5 of the
@@ -315,3 +295,23 @@ def test_the_grid_field_trains_its_shading_through_the_compiled_pass_outside_aut
         assert not isinstance(field.shade_fn(), compiled_colour.CompiledShadeTraining)
     with torch.no_grad():
         assert isinstance(field.shade_fn(), compiled_colour.CompiledShade)
+
+
+@pytest.mark.parametrize("level", sorted(X86_LEVELS))
+def test_the_shadings_built_for_each_vector_width_the_cpu_runs_shade_and_train_as_pytorch(level):
+    """Each vector width's code (its own tile of rays by outputs) shades as PyTorch does, and
+    trains with autograd's gradients."""
+    from nerf_backend.model_components.volume_rendering import shade_rays
+    library = _library_for(level)
+    field = _field(deferred_colour=True)
+    case = _training_case(field, 999, seed=6)
+    _, grad_mean, grads = _gradients(field, compiled_colour.CompiledShadeTraining(field, library), *case)
+    _, expected_mean, expected_grads = _gradients(field, _pytorch_shade(field), *case)
+    for actual, reference in [(grad_mean, expected_mean)] + [(grads[n], expected_grads[n]) for n in expected_grads]:
+        assert bool(((actual - reference).abs() <= 1e-5 * float(reference.abs().max()) + 2e-5 * reference.abs()).all())
+    composited = _composited(field, 1001, seed=5)
+    with torch.no_grad():
+        compiled = compiled_colour.CompiledShade(field, compiled_colour._linear_layers(field.colour_mlp), library)
+        actual = shade_rays(*composited, compiled)
+        expected = shade_rays(*composited, _pytorch_shade(field))
+    assert float((actual - expected).abs().max()) <= 5e-6
