@@ -172,8 +172,7 @@ class CompiledShade:
         first, second, third = layers
         appearance = field.config.appearance_dims
         with torch.no_grad():
-            grid_weight = (first.weight[:, :appearance] @ field.appearance_basis.weight).t()
-            self._kept = [torch.cat([grid_weight, first.weight[:, appearance:].t()]).contiguous(),
+            self._kept = [torch.cat([field.folded_grid_weight(), first.weight[:, appearance:].t()]).contiguous(),
                           first.bias.detach().contiguous(), second.weight.t().contiguous(),
                           second.bias.detach().contiguous(), third.weight.detach().contiguous(),
                           third.bias.detach().contiguous()]

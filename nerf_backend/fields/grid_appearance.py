@@ -132,14 +132,14 @@ class GridAppearance:
         region-aware, of its mean direction inputs beside them)."""
         if not self.deferred:
             return None
-        if not self.region_aware:  # on the CPU, the compiled passes: inference's, or training's
-            compiled = compiled_shade(self) if not torch.is_grad_enabled() else compiled_shade_training(self)
-            if compiled is not None:
-                return compiled
         if self.region_aware:
             width = self.appearance_grid.out_dims
             return lambda mean, directions: self.colour_from_grid(mean[:, :width],
                                                                   self.encode_directions(directions, mean[:, width:]))
+        # On the CPU, the compiled passes: inference's, or training's.
+        compiled = compiled_shade(self) if not torch.is_grad_enabled() else compiled_shade_training(self)
+        if compiled is not None:
+            return compiled
         return lambda mean, directions: self.colour_from_grid(mean, self.direction_inputs(directions))
 
     def sample_appearance(self, grid_features: Tensor, directions: Tensor, x: Tensor) -> Tensor:
@@ -214,9 +214,16 @@ class GridAppearance:
         ``[R, H]`` (its direction's encoding times those columns, plus the bias) and the grid
         features' weights ``[3·C, H]`` with the appearance basis folded in."""
         first = self.colour_mlp[0]
-        appearance = self.config.appearance_dims
-        per_ray = F.linear(self.direction_encoding(directions.float()), first.weight[:, appearance:], first.bias)
-        return per_ray, (first.weight[:, :appearance] @ self.appearance_basis.weight).t()
+        per_ray = F.linear(self.direction_encoding(directions.float()), first.weight[:, self.config.appearance_dims:],
+                           first.bias)
+        return per_ray, self.folded_grid_weight()
+
+    @torch.no_grad()
+    def folded_grid_weight(self) -> Tensor:
+        """The first layer's weights for the grid's features ``[3·C, H]``, the appearance basis
+        folded in (one product of the features instead of two)."""
+        first = self.colour_mlp[0]
+        return (first.weight[:, :self.config.appearance_dims] @ self.appearance_basis.weight).t()
 
     def appearance_cost(self) -> SampleCost:
         """One colour sample: each channel of a component reads 4 plane and 2 line values, and

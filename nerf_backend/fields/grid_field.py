@@ -215,10 +215,7 @@ class GridField(VertexOccupancy, GridAppearance, MarchableField):
         the step)."""
         if not self.training:  # the dense sum is the cache rendering reads: leave it as it is
             return super().occupancy_estimate()
-        density = self._dense_density()  # [Nz, Ny, Nx], this call's own in training
-        density.add_(self.config.density_shift)
-        torch.ops.aten.softplus.out(density, 1.0, 20.0, out=density)  # F.softplus's beta and threshold
-        density.mul_(self.config.density_scale)
+        density = self._activated_in_place(self._dense_density())  # [Nz, Ny, Nx], this call's own in training
         mean = float(density.mean())
         return cell_corner_max(density, overwrite=True).permute(2, 1, 0), mean
 
@@ -229,9 +226,13 @@ class GridField(VertexOccupancy, GridAppearance, MarchableField):
         with the sum, so a cell's largest corner density is the activation of its largest corner
         sum. No vertex-sized density is made, and the sum rendering reads stays as it is."""
         cells = cell_corner_max(self._dense_density())  # [Nz-1, Ny-1, Nx-1], new
-        cells.add_(self.config.density_shift)
-        torch.ops.aten.softplus.out(cells, 1.0, 20.0, out=cells)  # F.softplus's beta and threshold
-        return cells.mul_(self.config.density_scale).permute(2, 1, 0)
+        return self._activated_in_place(cells).permute(2, 1, 0)
+
+    def _activated_in_place(self, summed: Tensor) -> Tensor:
+        """``density_from_features`` of a float32 sum no gradient flows through, in its own memory."""
+        summed.add_(self.config.density_shift)
+        torch.ops.aten.softplus.out(summed, 1.0, 20.0, out=summed)  # F.softplus's beta and threshold
+        return summed.mul_(self.config.density_scale)
 
     @torch.no_grad()
     def vertex_density(self) -> Tensor:
