@@ -7,19 +7,21 @@ with its reason, and the model then renders through PyTorch."""
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import math
 
 import pytest
 import torch
 
-from conftest import rays_through_box
+from conftest import X86_LEVELS, cpu_runs_x86_level, rays_through_box
 from nerf_backend.configs.presets import PRESETS
 from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.kernels import build
 from nerf_backend.model_components import compiled_march
 from nerf_backend.model_components.marcher import (DRAFT_STOP, EXACT_STOP, OPAQUE_TRANSMITTANCE, SKIPPED_WEIGHT,
                                                    render_marched_stopping_early)
+from nerf_backend.models import marched
 from nerf_backend.models.registry import build_model
 
 BOX = SceneBounds((-1.0, -1.2, -0.8), (1.0, 1.2, 0.8))  # not a cube: the axes must not be swapped
@@ -143,6 +145,28 @@ def test_a_translucent_field_overflows_the_sample_buffer_and_is_marched_again(li
     assert float(reference.opacity.min()) < 0.9  # translucent: no early stop
     assert (compiled.rgb - reference.rgb).abs().max() < 2 * SKIPPED_WEIGHT + 1e-5
     assert (compiled.opacity - reference.opacity).abs().max() < 1e-4
+
+
+@pytest.mark.parametrize("level", sorted(X86_LEVELS))
+def test_the_march_built_for_each_vector_width_renders_the_same_image(level, library, monkeypatch):
+    """The march looks its steps up 8 at a time in vectors (4 floats wide at x86-64, 8 at
+    x86-64-v3) with the float operations of one step at a time: each level's build reads the
+    same steps as this CPU's own, so the images are equal bit for bit."""
+    if not cpu_runs_x86_level(level):
+        pytest.skip(f"this CPU cannot run code for {level}")
+    leveled, why_not = build.load_kernel("march_render", level)
+    assert leveled is not None, why_not
+    leveled.march_render.restype = ctypes.c_int64
+    model = _model("auto", seed=3, spread=1.4)
+    rays = rays_through_box(BOX, 3000, seed=4)
+    with torch.no_grad():
+        native = model(*rays)[0]
+        monkeypatch.setattr(marched, "compiled_march_library", lambda: (leveled, None))
+        assert model._compiled_density(rays[0].device)[1] is leveled
+        built = model(*rays)[0]
+    assert 0 < int((native.opacity > 0.5).sum()) < 3000
+    for name in ("rgb", "depth", "opacity"):
+        assert torch.equal(getattr(built, name), getattr(native, name)), name
 
 
 def test_without_a_compiler_the_reason_is_given_and_nothing_is_cached(tmp_path, monkeypatch):

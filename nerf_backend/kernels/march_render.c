@@ -57,12 +57,14 @@ static float activate(const MarchSettings *s, float v) {
         float x = v + s->b;  /* softplus as PyTorch's (threshold 20: linear above) */
         /* Below -15, log1p(e^x) = e^x to within e^x / 2 (a relative 2e-7): one call, not two
          * (the faint reads around a surface, where the shift leaves most values). Below -5,
-         * log1p(y) = y - y²/2 + y³/3 - y⁴/4 to within y⁵/5 (a relative 3e-10 at y = e^-5). */
+         * log1p(y) = y - y²/2 + y³/3 - y⁴/4 to within y⁵/5 (a relative 3e-10 at y = e^-5).
+         * Above, log(1 + y): y >= e^-5 leaves 1 + y's rounding a relative 1e-5 of the result at
+         * most, and glibc's logf took the march 0.93 times log1pf's time on lego. */
         if (x > 20.0f) return s->a * x;
         const float y = expf(x);
         if (x < -15.0f) return s->a * y;
         if (x < -5.0f) return s->a * (y * (1.0f - y * (0.5f - y * (1.0f / 3.0f - 0.25f * y))));
-        return s->a * log1pf(y);
+        return s->a * logf(1.0f + y);
     }
     float tail = 0.5f * expf(-fabsf(v) / s->a);
     return (v > 0.0f ? tail : 1.0f - tail) / s->a;
@@ -132,6 +134,75 @@ typedef struct {
     char padding[64];             /* each thread's counters on cache lines of their own */
 } MarchThread;
 
+/* A march's steps are looked up 8 at a time (GCC's and Clang's vector extension: AVX2 on x86,
+ * NEON pairs on ARM): their midpoints, whether they lie in the grid, their cells' bricks and
+ * bits, with the same float operations as one step at a time (-std=c99 contracts none into
+ * FMAs), so the same steps are read. One at a time, each step's lookup was a chain of scalar
+ * operations and an unpredictable branch, about 40 % of lego's render march. */
+#define LANES 8
+typedef float lanes_f __attribute__((vector_size(LANES * sizeof(float))));
+typedef int32_t lanes_i __attribute__((vector_size(LANES * sizeof(int32_t))));
+
+static inline lanes_f select_f(lanes_i take, lanes_f a, lanes_f b) {
+    return (lanes_f)((take & (lanes_i)a) | (~take & (lanes_i)b));
+}
+
+static inline lanes_f splat_lanes(float x) {
+    const lanes_f v = {x, x, x, x, x, x, x, x};
+    return v;
+}
+
+typedef struct {
+    float near, far, step;
+    float start[3], along[3], cell_count[3], last_cell[3];
+    int32_t bricks_y, bricks_z;  /* occupancy_bricks.h's By and Bz */
+} RaySteps;
+
+/* Bit j set where step first + j (j < lanes) lies in an occupied cell with a length above 0;
+ * *ended is set where a step of length 0 (the ray's far end) is among them, *valid counts the
+ * steps before it. */
+static inline uint32_t occupied_steps(const RaySteps *f, const uint8_t *occupied, int64_t first, int32_t lanes,
+                                      int *ended, int64_t *valid) {
+    const lanes_i offsets = {0, 1, 2, 3, 4, 5, 6, 7};
+    const lanes_f u = __builtin_convertvector((int32_t)first + offsets, lanes_f);
+    const lanes_f far = splat_lanes(f->far), zero = splat_lanes(0.0f);
+    lanes_f t_lo = f->near + u * f->step;
+    t_lo = select_f(t_lo > far, far, t_lo);
+    lanes_f t_hi = t_lo + f->step;
+    t_hi = select_f(t_hi > far, far, t_hi);
+    const lanes_f delta = t_hi - t_lo;
+    const lanes_f t_mid = t_lo + 0.5f * delta;
+    lanes_i keep = delta > 0.0f;
+    lanes_i cell[3];
+    for (int axis = 0; axis < 3; ++axis) {
+        const lanes_f units = f->start[axis] + f->along[axis] * t_mid;
+        keep &= (units >= 0.0f) & (units <= f->cell_count[axis]);
+        const lanes_f last = splat_lanes(f->last_cell[axis]);
+        const lanes_f clamped = select_f(units >= 0.0f, select_f(units > last, last, units), zero);
+        cell[axis] = __builtin_convertvector(clamped, lanes_i);  /* NaN went to 0, as clampf's */
+    }
+    const lanes_i byte = ((((cell[0] >> 3) * f->bricks_y + (cell[1] >> 3)) * f->bricks_z + (cell[2] >> 3)) << 6)
+                         + ((cell[0] & 7) << 3) + (cell[1] & 7);
+    const lanes_i bit = cell[2] & 7;
+    uint32_t found = 0;
+    int64_t counted = 0;
+    for (int j = 0; j < lanes; ++j) {
+        if (!(delta[j] > 0.0f)) {
+            *ended = 1;
+            break;
+        }
+        ++counted;
+        if (keep[j]) found |= (uint32_t)((occupied[byte[j]] >> bit[j]) & 1) << j;
+    }
+    *valid += counted;
+#if defined(__AVX__)
+    /* The upper halves cleared before the march calls expf and logf: left dirty (GCC put no
+     * vzeroupper before those calls), lego's march took 3.2 times as long. */
+    __builtin_ia32_vzeroupper();
+#endif
+    return found;
+}
+
 /* One ray into the thread's region; 0 if the region is full (nothing of the ray kept). */
 static int march_ray(MarchJob *job, MarchThread *thread, int64_t r) {
     const MarchSettings *s = job->s;
@@ -159,6 +230,9 @@ static int march_ray(MarchJob *job, MarchThread *thread, int64_t r) {
         start[axis] = (o[axis] - s->box_min[axis]) / side[axis];
         along[axis] = d[axis] / side[axis];
     }
+    RaySteps frame = {near, far, step, {start[0], start[1], start[2]}, {along[0], along[1], along[2]},
+                      {cell_count[0], cell_count[1], cell_count[2]}, {last_cell[0], last_cell[1], last_cell[2]},
+                      (int32_t)((cells[1] + 7) >> 3), (int32_t)((cells[2] + 7) >> 3)};
     float transmittance = 1.0f, depth = 0.0f, skipped = 0.0f, coloured = 0.0f;
     int64_t looked_up = 0, read = 0;
     int stopped = 0;
@@ -171,21 +245,18 @@ static int march_ray(MarchJob *job, MarchThread *thread, int64_t r) {
         if (!marked(skip, units, cells, last_cell)) continue;
         int64_t last = (k + 1) * span;
         if (last > steps - 1) last = steps - 1;
-        for (int64_t u = k * span; u < last; ++u) {
+        int ended = 0;
+        for (int64_t first = k * span; first < last && !ended && !stopped; first += LANES) {
+          const int32_t lanes = last - first < LANES ? (int32_t)(last - first) : LANES;
+          for (uint32_t found = occupied_steps(&frame, occupied, first, lanes, &ended, &looked_up); found;
+               found &= found - 1) {
+            const int64_t u = first + __builtin_ctz(found);
             float t_lo = near + (float)u * step;
             if (t_lo > far) t_lo = far;
             float t_hi = t_lo + step;
             if (t_hi > far) t_hi = far;
             const float delta = t_hi - t_lo;
-            if (!(delta > 0.0f)) break;
             const float t_mid = t_lo + 0.5f * delta;
-            ++looked_up;
-            int inside = 1;
-            for (int axis = 0; axis < 3; ++axis) {
-                units[axis] = start[axis] + along[axis] * t_mid;
-                inside &= units[axis] >= 0.0f && units[axis] <= cell_count[axis];
-            }
-            if (!inside || !marked(occupied, units, cells, last_cell)) continue;
             float p[3];
             for (int axis = 0; axis < 3; ++axis) p[axis] = o[axis] + d[axis] * t_mid;
             const float sigma = density_at(s, job->volume, p, d, to_vertex);
@@ -216,6 +287,7 @@ static int march_ray(MarchJob *job, MarchThread *thread, int64_t r) {
             depth += weight * t_mid;
             transmittance *= passed;
             if (transmittance <= s->opaque_transmittance) { stopped = 1; break; }
+          }
         }
     }
     job->transmittance[r] = transmittance;
