@@ -9,16 +9,19 @@ bounds of their shortcuts; a faint ray's gradients stay finite; the preset train
 
 from __future__ import annotations
 
+import ctypes
 import json
 
 import numpy as np
 import pytest
 import torch
 
-from conftest import deferred_grid_model, rays_through_box, run_python
+from conftest import X86_LEVELS, cpu_runs_x86_level, deferred_grid_model, rays_through_box, run_python
 from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.data.dataset import load_split
+from nerf_backend.field_components.compiled_colour import CompiledRayFeatures
 from nerf_backend.fields.grid_field import GridField, GridFieldConfig
+from nerf_backend.kernels.build import load_kernel
 from nerf_backend.metrics.image_metrics import psnr
 from nerf_backend.model_components import marcher
 from nerf_backend.model_components.compiled_composite import compiled_composite_features
@@ -180,11 +183,20 @@ def test_the_compiled_compositing_equals_pytorchs_and_its_gradients(scale, threa
         assert float((compiled - reference).abs().max()) <= 1e-4 * max(1.0, float(reference.abs().max()))
 
 
-def test_the_compiled_inference_compositing_adds_each_samples_weighted_features():
-    """``CompiledRayFeatures.composite`` against the sum written with PyTorch's reads."""
+@pytest.mark.parametrize("level", [None, *sorted(X86_LEVELS)])
+def test_the_compiled_inference_compositing_adds_each_samples_weighted_features(level):
+    """``CompiledRayFeatures.composite`` against the sum written with PyTorch's reads: this
+    CPU's build, and each vector width's it runs (conftest's X86_LEVELS)."""
     field = _field(deferred=True, wall=False, seed=6)
     features_fn = field.ray_features(torch.zeros(1, 3))
     assert hasattr(features_fn, "composite")  # the compiled pass applies here
+    if level is not None:
+        if not cpu_runs_x86_level(level):
+            pytest.skip(f"this CPU cannot run code for {level}")
+        library, why_not = load_kernel("vm_grid", level)
+        assert library is not None, why_not
+        library.composite_samples.restype = ctypes.c_int
+        features_fn = CompiledRayFeatures(field, library)
     generator = torch.Generator().manual_seed(7)
     ray = torch.sort(torch.randint(0, 50, (4000,), generator=generator)).values
     x = (torch.rand(4000, 3, generator=generator) * 2 - 1) * torch.tensor([1.0, 1.0, 0.5])
