@@ -16,6 +16,7 @@ import torch
 
 from conftest import X86_LEVELS, cpu_runs_x86_level, rays_through_box
 from nerf_backend.configs.presets import PRESETS
+from nerf_backend.core.cameras import Intrinsics, camera_rays, pixel_centres, ray_box_intersection
 from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.kernels import build
 from nerf_backend.model_components import compiled_march
@@ -167,6 +168,55 @@ def test_the_march_built_for_each_vector_width_renders_the_same_image(level, lib
     assert 0 < int((native.opacity > 0.5).sum()) < 3000
     for name in ("rgb", "depth", "opacity"):
         assert torch.equal(getattr(built, name), getattr(native, name)), name
+
+
+def test_the_compiled_box_stretch_is_pytorchs_bit_for_bit(library):
+    """``ray_box_stretch`` on the CPU (march_render.c's ``rays_through_box``) against
+    ``ray_box_intersection`` and the narrowing through PyTorch: rays from outside and inside the
+    box, rays along an axis (a zero component), rays that miss, and NaN and infinite parts, all
+    equal to the last bit (NaN where PyTorch has NaN)."""
+    generator = torch.Generator().manual_seed(12)
+    origins = torch.randn(5000, 3, generator=generator) * 3
+    directions = torch.nn.functional.normalize(torch.randn(5000, 3, generator=generator), dim=-1)
+    aimed = torch.rand(2500, 3, generator=generator) * 1.6 - 0.8  # points in the box
+    directions[520:3020] = torch.nn.functional.normalize(aimed - origins[520:3020], dim=-1)
+    directions[:300, 0] = 0.0  # along the y-z plane
+    directions[300:400, :2] = 0.0
+    directions[300:400, 2] = -1.0
+    directions[400:410, 1] = float("nan")
+    origins[410:420, 2] = float("inf")
+    origins[420:520] = torch.rand(100, 3, generator=generator) * 1.6 - 0.8  # inside the box
+    box_min, box_max = torch.tensor([-1.0, -1.2, -0.8]), torch.tensor([1.0, 1.2, 0.8])
+    assert compiled_march.compiled_march_library()[0] is library
+    near, far = compiled_march.ray_box_stretch(origins, directions, box_min, box_max)
+    entry, exit_, hit = ray_box_intersection(origins, directions, box_min, box_max)
+    assert 1000 < int(hit.sum()) < 4000 and near[420:520].eq(0).all()
+    assert torch.equal(near.nan_to_num(7.0), entry.nan_to_num(7.0)) and torch.equal(far.nan_to_num(7.0), exit_.nan_to_num(7.0))
+    assert near.isnan().sum() >= 10 and torch.equal(near.isnan(), entry.isnan())
+    within = (torch.rand(5000, generator=generator) * 2, 2 + torch.rand(5000, generator=generator) * 3)
+    narrowed = compiled_march.ray_box_stretch(origins, directions, box_min, box_max, within=within)
+    expected_near = torch.maximum(within[0], entry)
+    expected_far = torch.maximum(torch.minimum(within[1], exit_), expected_near)
+    assert torch.equal(narrowed[0].nan_to_num(7.0), expected_near.nan_to_num(7.0))
+    assert torch.equal(narrowed[1].nan_to_num(7.0), expected_far.nan_to_num(7.0))
+    assert within[0].isnan().sum() == 0  # the stretch given is left as it was
+
+
+def test_the_compiled_pixel_rays_are_pytorchs_camera_rays(library):
+    """``pixel_rays`` on the CPU (march_render.c) against ``camera_rays`` of ``pixel_centres``:
+    a chunk of a wide image from its middle (rows wrapping), a rotated and moved camera whose
+    focal lengths differ and whose principal point is off centre: the same origins, and
+    directions within 2 float32 steps (the rotation's sums are added in another order)."""
+    intrinsics = Intrinsics(37, 23, 41.0, 45.5, 17.25, 12.0)
+    rotation = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(13)))[0]
+    pose = torch.eye(4)
+    pose[:3, :3], pose[:3, 3] = rotation, torch.tensor([0.5, -2.0, 3.0])
+    assert compiled_march.compiled_march_library()[0] is library
+    origins, directions = compiled_march.pixel_rays(intrinsics, pose, 100, 700)
+    expected = camera_rays(intrinsics, pose, pixel_centres(37, torch.arange(100, 700)))
+    assert torch.equal(origins, expected[0])
+    assert (directions - expected[1]).abs().max() <= 2 * torch.finfo(torch.float32).eps
+    assert torch.allclose(directions.norm(dim=-1), torch.ones(600), atol=2e-7)
 
 
 def test_without_a_compiler_the_reason_is_given_and_nothing_is_cached(tmp_path, monkeypatch):

@@ -12,8 +12,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..core.cameras import Intrinsics, camera_rays, pixel_centres
+from ..core.cameras import Intrinsics
 from ..core.files import write_exr, write_png
+from ..model_components.compiled_march import pixel_rays
 from ..model_components.ray_bounds import RayBounds
 from ..models.base import Model, final_output
 
@@ -36,8 +37,8 @@ def render_image(
     height, width = intrinsics.height, intrinsics.width
 
     def rays(start: int, stop: int) -> tuple[Tensor, Tensor]:
-        # Pixel centres of this chunk only: the full grid would be O(H·W) memory.
-        return camera_rays(intrinsics, pose, pixel_centres(width, torch.arange(start, stop, device=device)))
+        # This chunk's pixels only: the full grid would be O(H·W) memory.
+        return pixel_rays(intrinsics, pose, start, stop)
 
     rgb, depth, opacity = render_rays(model, rays, height * width, ray_bounds, chunk)
     return RenderedImage(rgb.reshape(height, width, 3), depth.reshape(height, width), opacity.reshape(height, width))

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.cameras import ray_box_intersection
 from ..core.scene_bounds import SceneBounds
+from .compiled_march import ray_box_stretch
 
 PROTOCOL_NEAR, PROTOCOL_FAR = 2.0, 6.0
 # Without a scene profile: the box the nerf_synthetic scenes are normalised into.
@@ -38,8 +38,7 @@ class RayBounds:
             return t_near, torch.full_like(t_near, self.far)
         box_min = torch.tensor(self.box.box_min, device=origins.device, dtype=origins.dtype)
         box_max = torch.tensor(self.box.box_max, device=origins.device, dtype=origins.dtype)
-        t_near, t_far, _ = ray_box_intersection(origins, directions, box_min, box_max)
-        return t_near, t_far
+        return ray_box_stretch(origins, directions, box_min, box_max)
 
 
 def choose_ray_bounds(kind: str, scene_bounds: SceneBounds | None) -> tuple[RayBounds, str]:

@@ -24,7 +24,7 @@ from ..fields.base import MarchableField
 from ..model_components.compiled_march import RENDER_CHUNK as COMPILED_RENDER_CHUNK
 from ..model_components.glass import GlassSurfaces
 from ..model_components.compiled_march import (VolumeDensity, compiled_lit_samples, compiled_march_library,
-                                               render_marched_compiled)
+                                               ray_box_stretch, render_marched_compiled)
 from ..model_components.marcher import (DRAFT_STOP, EXACT_STOP, OPAQUE_TRANSMITTANCE, render_marched,
                                          render_marched_stopping_early)
 from ..model_components.occupancy import OccupancyGrid
@@ -334,9 +334,7 @@ class MarchedModel(Model):
                           t_far: Tensor) -> tuple[Tensor, Tensor]:
         """``[t_near, t_far]`` narrowed to each ray's stretch inside the field's box (empty,
         ``t_far == t_near``, for a ray that misses it)."""
-        entry, exit_, _ = ray_box_intersection(origins, directions, self.field.box_min, self.field.box_max)
-        t_near = torch.maximum(t_near, entry)
-        return t_near, torch.maximum(torch.minimum(t_far, exit_), t_near)
+        return ray_box_stretch(origins, directions, self.field.box_min, self.field.box_max, within=(t_near, t_far))
 
     def _render_compiled_inside(self, origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor,
                                 density: VolumeDensity, library, march: dict) -> RenderOutput:
