@@ -9,6 +9,12 @@ import sys
 # setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+# Large freed blocks kept for reuse, not handed back to the kernel and faulted in again
+# (core/allocator.py: a rendered view of lego 0.55 s against 0.61-0.69).
+from .core.allocator import keep_freed_memory  # noqa: E402  (before torch's first allocations)
+
+keep_freed_memory()
+
 try:
     import torch  # noqa: F401  (checked first: without it the error would be a traceback)
 except ModuleNotFoundError:
