@@ -21,6 +21,6 @@ except ModuleNotFoundError:
     raise SystemExit(f"python -m nerf_backend: error: this Python ({sys.executable}) has no torch; use the "
                      "project's Python, .venv/bin/python (`make setup` creates it)") from None
 
-from .cli import main
+from .cli import main  # noqa: E402  (after the settings above)
 
 raise SystemExit(main())
