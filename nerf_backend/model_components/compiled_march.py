@@ -138,7 +138,7 @@ def ray_box_stretch(origins: Tensor, directions: Tensor, box_min: Tensor, box_ma
     compiled = origins.device.type == "cpu" and origins.dtype == directions.dtype == torch.float32
     library = compiled_march_library()[0] if compiled else None
     if library is None:
-        entry, exit_, _ = ray_box_intersection(origins, directions, box_min.to(origins), box_max.to(origins))
+        entry, exit_, _ = ray_box_intersection(origins, directions, box_min, box_max)
         if within is None:
             return entry, exit_
         t_near = torch.maximum(within[0], entry)
@@ -152,8 +152,6 @@ def ray_box_stretch(origins: Tensor, directions: Tensor, box_min: Tensor, box_ma
     library.rays_through_box(_pointer(origins), _pointer(directions), ctypes.c_int64(origins.shape[0]), box,
                              _pointer(t_near), _pointer(t_far), ctypes.c_int32(within is not None))
     return t_near, t_far
-
-
 
 
 def _pointer(tensor: Tensor) -> ctypes.c_void_p:
