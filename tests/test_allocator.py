@@ -14,6 +14,8 @@ import sys
 
 import pytest
 
+from nerf_backend.core.allocator import USER_VARIABLES, keep_freed_memory
+
 PROGRAM = """
 import ctypes, json, resource, sys
 ctypes.CDLL(None).prctl(41, 1, 0, 0, 0)  # PR_SET_THP_DISABLE: faults counted in 4 KB pages wherever THP is on
@@ -48,7 +50,7 @@ print(json.dumps({"kept": kept, "faults": faults, "opacity": float(image.opacity
 
 def _render(mode: str) -> dict:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    for name in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_"):
+    for name in USER_VARIABLES:
         env.pop(name, None)
     done = subprocess.run([sys.executable, "-c", PROGRAM, mode], capture_output=True, text=True, env=env,
                           check=True, timeout=300)
@@ -65,6 +67,5 @@ def test_a_view_rendered_again_reuses_the_pages_of_the_last():
 
 
 def test_the_users_own_setting_is_left_alone(monkeypatch):
-    from nerf_backend.core.allocator import keep_freed_memory
-    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "1000000")
+    monkeypatch.setenv(USER_VARIABLES[1], "1000000")
     assert keep_freed_memory() is False

@@ -278,25 +278,13 @@ typedef struct {
 
 /* A sample's features from its three axes' corners, each found once: every component reads two
  * of them for its plane and the third for its line. Found a component at a time (nine, through
- * forward_sample, a call each, with no fused multiply-adds: it is defined before this file's
- * pragma), the pass spent about 450 instructions a sample, and it ran as fast on a few rows as
- * on lego's 20 MB of them: it was the instructions, not the memory. */
+ * forward_sample, a call each), the pass spent about 450 instructions a sample, and it ran as
+ * fast on a few rows as on lego's 20 MB of them: it was the instructions, not the memory. */
 static inline void features_at(const Component grid[3], const AxisCorner corner[3], float *out) {
     for (int i = 0; i < 3; ++i) {
         const Component *m = &grid[i];
-        const AxisCorner a = corner[m->axis_a], b = corner[m->axis_b], c = corner[m->axis_c];
-        const int32_t C = m->channels;
-        const vec w00 = splat(a.low_weight * b.low_weight), w01 = splat(a.low_weight * b.high_weight);
-        const vec w10 = splat(a.high_weight * b.low_weight), w11 = splat(a.high_weight * b.high_weight);
-        const vec u0 = splat(c.low_weight), u1 = splat(c.high_weight);
-        const float *p00 = m->plane + ((int64_t)a.lower * m->nb + b.lower) * C, *p01 = p00 + C;
-        const float *p10 = p00 + (int64_t)m->nb * C, *p11 = p10 + C;
-        const float *l0 = m->line + c.lower * C, *l1 = l0 + C;
-        for (int32_t k = 0; k < C; k += BLOCK) {
-            const vec plane = w00 * load(p00 + k) + w01 * load(p01 + k) + w10 * load(p10 + k) + w11 * load(p11 + k);
-            store(out + k, plane * (u0 * load(l0 + k) + u1 * load(l1 + k)));
-        }
-        out += C;
+        component_features(m, corner[m->axis_a], corner[m->axis_b], corner[m->axis_c], out);
+        out += m->channels;
     }
 }
 

@@ -72,18 +72,25 @@ static inline vec load(const float *p) { vec v; memcpy(&v, p, sizeof v); return 
 static inline void store(float *p, vec v) { memcpy(p, &v, sizeof v); }
 static inline vec splat(float x) { vec v = {x, x, x, x, x, x, x, x}; return v; }
 
-static void forward_sample(const Component *m, const float *x, float *out) {
-    const SampleCorners s = corners_of(m, x);
+/* A component's features at a sample whose three corners are found: forward_sample's read, and
+ * colour_network.h's features_at, which finds each axis's corners once for all three components. */
+static inline void component_features(const Component *m, AxisCorner a, AxisCorner b, AxisCorner c, float *out) {
     const int32_t C = m->channels;
-    const vec w00 = splat(s.a.low_weight * s.b.low_weight), w01 = splat(s.a.low_weight * s.b.high_weight);
-    const vec w10 = splat(s.a.high_weight * s.b.low_weight), w11 = splat(s.a.high_weight * s.b.high_weight);
-    const vec u0 = splat(s.c.low_weight), u1 = splat(s.c.high_weight);
-    const float *p00 = m->plane + s.row * C, *p01 = p00 + C, *p10 = p00 + (int64_t)m->nb * C, *p11 = p10 + C;
-    const float *l0 = m->line + (int64_t)s.c.lower * C, *l1 = l0 + C;
+    const vec w00 = splat(a.low_weight * b.low_weight), w01 = splat(a.low_weight * b.high_weight);
+    const vec w10 = splat(a.high_weight * b.low_weight), w11 = splat(a.high_weight * b.high_weight);
+    const vec u0 = splat(c.low_weight), u1 = splat(c.high_weight);
+    const float *p00 = m->plane + ((int64_t)a.lower * m->nb + b.lower) * C, *p01 = p00 + C;
+    const float *p10 = p00 + (int64_t)m->nb * C, *p11 = p10 + C;
+    const float *l0 = m->line + c.lower * C, *l1 = l0 + C;
     for (int32_t k = 0; k < C; k += BLOCK) {
         vec plane = w00 * load(p00 + k) + w01 * load(p01 + k) + w10 * load(p10 + k) + w11 * load(p11 + k);
         store(out + k, plane * (u0 * load(l0 + k) + u1 * load(l1 + k)));
     }
+}
+
+static void forward_sample(const Component *m, const float *x, float *out) {
+    const SampleCorners s = corners_of(m, x);
+    component_features(m, s.a, s.b, s.c, out);
 }
 
 static inline void add_into(float *p, vec v) { store(p, load(p) + v); }
