@@ -13,6 +13,7 @@ from torch import Tensor, nn
 
 from ..core.field_functions import LitPassFn, RayColourFn, ShadeFn
 from ..core.scene_bounds import SceneBounds
+from ..model_components.occupancy import cells_exceeding
 
 
 class SampleCost(NamedTuple):
@@ -164,6 +165,23 @@ class MarchableField(nn.Module):
         """``occupancy_estimate``'s cell maxima as they stand, changing nothing (what
         rendering prunes its grid with); None before the field has any."""
         raise NotImplementedError
+
+    @torch.no_grad()
+    def occupied_cells(self, threshold: float, allowed: Tensor | None, rendering: bool) -> Tensor | None:
+        """Bool ``[Gx, Gy, Gz]``: the cells whose largest density exceeds ``threshold``, or the
+        mean density where that is lower (Instant-NGP's rule: a young, faint field is never
+        pruned to nothing), and only ``allowed`` ones where given. In training (``rendering``
+        False) from a fresh ``occupancy_estimate`` and the field's mean density; for rendering
+        from ``cell_max_density`` as it stands and the mean of the cells' maxima (nerfacc's
+        rule), None before the field has any."""
+        if rendering:
+            cell_max = self.cell_max_density()
+            if cell_max is None:
+                return None
+            mean = float(cell_max.mean())
+        else:
+            cell_max, mean = self.occupancy_estimate()
+        return cells_exceeding(cell_max, min(threshold, mean), allowed)
 
     def sample_cost(self) -> dict[str, SampleCost]:
         """One sample's cost in each of the field's reads: ``"density"``, ``"colour"``,

@@ -9,6 +9,7 @@ weight), which is where most of the speed of the fast preset comes from.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -22,10 +23,17 @@ from ..field_components.compiled_grid import density_components, read_grids
 from ..field_components.compiled_lit_pass import lit_pass, lit_pass_applies
 from ..model_components.compiled_march import GridDensity
 from ..model_components.marcher import TRAIN_COLOURED_WEIGHT, TRAIN_RELATIVE_WEIGHT
+from ..model_components.occupancy import cells_over
 from ..field_components.grid_encodings import VectorMatrixGrid, Vertices
 from ..field_components.grid_growth import cubic_vertices, grown_resolution, stage_of
 from .base import MarchableField, SampleCost, VertexOccupancy, cell_corner_max
 from .grid_appearance import GridAppearance
+
+
+# How far the compiled cell pass's lower bound on the mean density must exceed the threshold for
+# the mean to be left uncomputed: the bound's float sums are within 1e-5 of exact, and PyTorch's
+# float mean within as little, so the rule's min(threshold, mean) is then the threshold.
+MEAN_BOUND_SLACK = 1e-4
 
 
 @dataclass(frozen=True)
@@ -227,6 +235,43 @@ class GridField(VertexOccupancy, GridAppearance, MarchableField):
         sum. No vertex-sized density is made, and the sum rendering reads stays as it is."""
         cells = cell_corner_max(self._dense_density())  # [Nz-1, Ny-1, Nx-1], new
         return self._activated_in_place(cells).permute(2, 1, 0)
+
+    @torch.no_grad()
+    def occupied_cells(self, threshold: float, allowed: Tensor | None, rendering: bool) -> Tensor | None:
+        """``MarchableField.occupied_cells`` in the dense sum's own terms, in one compiled pass
+        (``occupancy.cells_over``): the density increases with the sum, so a cell's largest
+        density exceeds a threshold where its largest corner sum exceeds ``_sum_above`` of it.
+        The mean density is computed only where the pass's bound under it (softplus(v) >
+        max(0, v)) does not already exceed the threshold: a young, faint field. Lego's
+        thirty-minute grid (309 × 532 × 344 vertices, rendering, 2 cores): 0.54-0.78 s through
+        PyTorch, 0.09-0.11 s so."""
+        if self.density_grid.planes[0].device.type != "cpu":
+            return super().occupied_cells(threshold, allowed, rendering)
+        sums = self._dense_density()  # [Nz, Ny, Nx]: fresh in training, kept while rendering
+        shift, scale = self.config.density_shift, self.config.density_scale
+        marked = cells_over(sums, self._sum_above(threshold), shift, allowed)
+        if marked is None:  # no compiler: through PyTorch (the sum made again in training)
+            return super().occupied_cells(threshold, allowed, rendering)
+        occupied, vertex_excess, cell_excess = marked
+        excess, count = (cell_excess, occupied.numel()) if rendering else (vertex_excess, sums.numel())
+        if scale * excess / count >= threshold * (1.0 + MEAN_BOUND_SLACK):
+            return occupied
+        if rendering:  # the mean of the cells' largest densities, as the rule has it
+            mean = float(self._activated_in_place(cell_corner_max(sums)).mean())
+        else:  # the mean over the vertices
+            mean = float(self.density_from_features(sums).mean())
+        if mean >= threshold:
+            return occupied
+        return cells_over(sums, self._sum_above(mean), shift, allowed)[0]
+
+    def _sum_above(self, density: float) -> float:
+        """The pre-activation sum ``v`` whose density ``scale · softplus(v + shift)`` is
+        ``density`` (the density exceeds it exactly where the sum exceeds this); −∞ for a
+        density ≤ 0, which every sum's exceeds."""
+        y = density / self.config.density_scale
+        if not y > 0.0:
+            return -math.inf
+        return y + math.log(-math.expm1(-y)) - self.config.density_shift  # softplus⁻¹(y), stable for all y > 0
 
     def _activated_in_place(self, summed: Tensor) -> Tensor:
         """``density_from_features`` of a float32 sum no gradient flows through, in its own memory."""

@@ -9,6 +9,7 @@ threshold anywhere is never skipped; other fields give an estimate (``MarchableF
 
 from __future__ import annotations
 
+import ctypes
 import math
 from typing import Callable
 
@@ -18,6 +19,7 @@ from torch import Tensor, nn
 
 from ..core.scene_bounds import SceneBounds
 from ..core.tensor_keys import values_key
+from ..kernels.build import load_kernel
 
 # How far (in cells, on each axis) the skip grid (``OccupancyGrid.skip_cells``) spreads each
 # occupied cell: a ray first checks spans of up to twice this many cells, one query each, and
@@ -51,6 +53,55 @@ def widened(cells: Tensor, radius: int) -> Tensor:
     return cells
 
 
+def cells_exceeding(cell_max_density: Tensor, threshold: float, allowed: Tensor | None = None) -> Tensor:
+    """Bool ``[Gx, Gy, Gz]``: the cells whose largest density exceeds ``threshold`` (and,
+    given ``allowed``, only those), in the grid's own layout whatever the densities' strides."""
+    # Compared before combining: a field's densities may come as a transposed view, and `&`
+    # over two layouts gathered byte by byte (0.8 s at 540 cells a side).
+    occupied = (cell_max_density > threshold).contiguous()
+    return occupied if allowed is None else occupied & allowed
+
+
+def cells_over(vertex_sums: Tensor, above: float, shift: float,
+               allowed: Tensor | None = None) -> tuple[Tensor, float, float] | None:
+    """The cells of a grid whose vertices hold ``vertex_sums [Nz, Ny, Nx]`` (x fastest) whose
+    largest corner exceeds ``above`` (and, given ``allowed [Gx, Gy, Gz]``, only those), as bool
+    ``[Nx - 1, Ny - 1, Nz - 1]``; with the sums of ``max(0, v + shift)`` over the vertices and
+    over the cells' largest corners (the bounds under a softplus density's mean). In one
+    compiled pass (``kernels/occupied_cells.c``); None where it does not apply (not float32 on
+    the CPU, fewer than two vertices an axis, no compiler): then ``cell_corner_max`` and
+    ``cells_exceeding`` decide the same cells.
+
+    Example (where a C compiler is found):
+        >>> sums = torch.zeros(2, 2, 3)  # z, y, x: two cells along x
+        >>> sums[0, 0, 2] = 5.0  # a corner of the second cell only
+        >>> occupied, vertex_excess, cell_excess = cells_over(sums, 1.0, shift=-1.0)
+        >>> occupied.flatten().tolist(), vertex_excess, cell_excess
+        ([False, True], 4.0, 4.0)
+    """
+    if (vertex_sums.device.type != "cpu" or vertex_sums.dtype != torch.float32 or vertex_sums.dim() != 3
+            or min(vertex_sums.shape) < 2):
+        return None
+    library = load_kernel("occupied_cells")[0]
+    if library is None:
+        return None
+    sums = vertex_sums.detach().contiguous()
+    nz, ny, nx = sums.shape
+    occupied = torch.empty((nx - 1, ny - 1, nz - 1), dtype=torch.bool)
+    may = None if allowed is None else allowed.to(torch.bool).contiguous()
+    if may is not None and tuple(may.shape) != tuple(occupied.shape):
+        raise ValueError(f"expected {tuple(occupied.shape)} allowed cells, got {tuple(may.shape)}")
+    excess = (ctypes.c_double * 2)()
+    library.cells_over.restype = ctypes.c_int
+    failed = library.cells_over(
+        ctypes.c_void_p(sums.data_ptr()), ctypes.c_int64(nz), ctypes.c_int64(ny), ctypes.c_int64(nx),
+        ctypes.c_double(above), ctypes.c_float(shift), ctypes.c_void_p(None if may is None else may.data_ptr()),
+        ctypes.c_void_p(occupied.data_ptr()), excess, ctypes.c_int64(torch.get_num_threads()))
+    if failed:
+        raise MemoryError(f"marking the cells of a {nx} × {ny} × {nz} grid found no scratch memory")
+    return occupied, excess[0], excess[1]
+
+
 class OccupancyGrid(nn.Module):
     """``occupied [Gx, Gy, Gz]`` cells over ``[box_min, box_max]``; all occupied until updated
     (``cells``: per axis, or an int for the same on every axis).
@@ -66,15 +117,11 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("_cells_tensor", torch.tensor(self.cells), persistent=False)
 
     @torch.no_grad()
-    def update(self, cell_max_density: Tensor, threshold: float, allowed: Tensor | None = None) -> None:
-        """Mark the cells whose largest density ``[Gx, Gy, Gz]`` exceeds ``threshold`` (and,
-        given ``allowed [Gx, Gy, Gz]``, only those: a prior that knows where nothing can be)."""
-        if tuple(cell_max_density.shape) != self.cells:
-            raise ValueError(f"expected {self.cells} cell values, got {tuple(cell_max_density.shape)}")
-        # In the grid's own layout before combining: a field's densities may come as a
-        # transposed view, and `&` over two layouts gathered byte by byte (0.8 s at 540 cells a side).
-        occupied = (cell_max_density > threshold).contiguous()
-        self.occupied.copy_(occupied if allowed is None else occupied & allowed)
+    def mark(self, occupied: Tensor) -> None:
+        """Mark exactly the cells set in bool ``occupied [Gx, Gy, Gz]``."""
+        if tuple(occupied.shape) != self.cells:
+            raise ValueError(f"expected {self.cells} cells, got {tuple(occupied.shape)}")
+        self.occupied.copy_(occupied)
 
     def cell_index(self, points: Tensor) -> Tensor:
         """Integer cell coordinates ``[P, 3]`` of world points (clamped to the grid)."""

@@ -150,8 +150,7 @@ class MarchedModel(Model):
         """Re-mark empty space from the field's own density, never outside the prior. The
         threshold never exceeds the mean density (Instant-NGP's rule), so a young, still-faint
         field is never pruned to nothing."""
-        cell_max, mean_density = self.field.occupancy_estimate()
-        self.occupancy.update(cell_max, min(self.density_threshold, mean_density), self.allowed)
+        self.occupancy.mark(self.field.occupied_cells(self.density_threshold, self.allowed, rendering=False))
 
     @torch.no_grad()
     def render_occupancy(self) -> OccupancyGrid:
@@ -165,12 +164,11 @@ class MarchedModel(Model):
         key = (values_key([*self.field.parameters(), self.occupancy.occupied]), self.render_density_threshold)
         cached = getattr(self, "_render_cache", None)
         if cached is None or cached[0] != key:
-            cell_max = self.field.cell_max_density()
+            occupied = self.field.occupied_cells(self.render_density_threshold, self.occupancy.occupied, rendering=True)
             grid = self.occupancy
-            if cell_max is not None:
-                grid = OccupancyGrid(self.field.box_min, self.field.box_max, self.occupancy.cells).to(cell_max.device)
-                threshold = min(self.render_density_threshold, float(cell_max.mean()))
-                grid.update(cell_max, threshold, self.occupancy.occupied)
+            if occupied is not None:
+                grid = OccupancyGrid(self.field.box_min, self.field.box_max, self.occupancy.cells).to(occupied.device)
+                grid.mark(occupied)
             # A tuple, not a module attribute: a derived grid is no part of the checkpoint.
             cached = self._render_cache = (key, grid)
         return cached[1]
