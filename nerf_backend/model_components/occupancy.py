@@ -34,8 +34,10 @@ SKIP_RADIUS = 6
 
 def widened(cells: Tensor, radius: int) -> Tensor:
     """Bool ``cells [X, Y, Z]`` widened by ``radius`` cells on each axis (a cube around each
-    marked cell): one axis at a time, or-ing shifted copies. At 256³ on 2 CPU cores, radius
-    4: 0.02 s, where max-pooling the same cube over floats took 0.74 s (the same cells).
+    marked cell): one axis at a time, or-ing shifted copies, each round's shift as large as
+    leaves no gap. At 256³ on 2 CPU cores, radius 4: 0.02 s, where max-pooling the same cube
+    over floats took 0.74 s (the same cells); lego's thirty-minute grid (308 × 531 × 343
+    cells, radius 6) 0.20 s a shift at a time, 0.12 s so.
 
     Example:
         >>> cells = torch.zeros(5, 5, 5, dtype=torch.bool)
@@ -43,13 +45,21 @@ def widened(cells: Tensor, radius: int) -> Tensor:
         >>> widened(cells, 1)[:, 2, :].int().tolist()  # the slice through the marked cell
         [[0, 0, 0, 1, 1], [0, 0, 0, 1, 1], [0, 0, 0, 0, 0], [0, 0, 0, 0, 0], [0, 0, 0, 0, 0]]
     """
-    cells = cells.clone()
-    for axis in range(3):
-        before = cells.clone()
-        size = cells.shape[axis]
-        for shift in range(1, min(radius, size - 1) + 1):
+    cells, before = cells.clone(), torch.empty_like(cells)  # one scratch for every round: fresh
+    for axis in range(3):  # pages for each would cost more than the or-ing (lego: 56 MB each)
+        size, reach = cells.shape[axis], 0  # cells now marks each mark's ±reach along the axis
+        while reach < min(radius, size - 1):
+            # or-ing copies shifted ±shift reaches ±(reach + shift), without a gap while shift
+            # ≤ 2·reach + 1: radius 6 in three rounds (1, 3, 2) of two passes, not six
+            shift = min(2 * reach + 1, radius - reach, size - 1)
+            before.copy_(cells)
             cells.narrow(axis, shift, size - shift).logical_or_(before.narrow(axis, 0, size - shift))
             cells.narrow(axis, 0, size - shift).logical_or_(before.narrow(axis, shift, size - shift))
+            # Near an end the copy from beyond it is missing; the end cell's marks are the part
+            # of that window inside the grid.
+            cells.narrow(axis, 0, shift).logical_or_(before.narrow(axis, 0, 1))
+            cells.narrow(axis, size - shift, shift).logical_or_(before.narrow(axis, size - 1, 1))
+            reach += shift
     return cells
 
 
