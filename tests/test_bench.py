@@ -260,6 +260,8 @@ def test_bench_step_profiles_a_marched_preset_by_stage(tiny_demo_dataset, tmp_pa
         # the rates' own timing noise).
         assert row["times_reference"] > 0.8, (name, row)
     assert "Farthest from its limit" in result.stdout
+    for part in (training, report["render"]):  # the hypervisor's share while each was timed (Linux)
+        assert part["cpu_stolen_share"] is None or 0.0 <= part["cpu_stolen_share"] <= 1.0
     render = {row["stage"]: row for row in report["render"]["stages"]}
     # On this CPU the compiled march renders (spans, march and density in one pass).
     assert report["render"]["compiled_march"] and list(render) == ["march", "colour", "other"]

@@ -30,6 +30,7 @@ import math
 import time
 from pathlib import Path
 
+from ..core.cpu_steal import StealMeter, steal_note
 from ..core.devices import machine_record, machine_words, resolve_device
 from ..core.errors import NerfError
 from ..core.files import write_json
@@ -109,7 +110,7 @@ def profile_marched_step(dataset: Path, preset: str, steps: int | None, out_dir:
     refresh_every = load_trained_model(RunFolder(run_dir), device)[0].occupancy_refresh_every()
     if steps is None:
         steps = refresh_every * math.ceil(DEFAULT_STEPS / refresh_every)
-    with StageTimer(device) as timer:
+    with StageTimer(device) as timer, StealMeter() as training_steal:
         # At the end of the warm-up's schedule (its budget spent), with its time limit lifted.
         timed = train(TrainOptions(**common, iterations=warm.iteration + steps, resume=True,
                                    max_seconds=1e9, schedule_seconds=warmup_seconds))
@@ -120,7 +121,7 @@ def profile_marched_step(dataset: Path, preset: str, steps: int | None, out_dir:
     hardware = measure_hardware(device, table_bytes=sum(p.numel() * 4 for p in model.field.encoding_parameters()))
     test = load_split(dataset, "test")
     render_image(model, test.intrinsics, test.poses[0], ray_bounds)  # untimed: caches (the density volume)
-    with StageTimer(device) as render_timer:
+    with StageTimer(device) as render_timer, StealMeter() as render_steal:
         start = time.perf_counter()
         render_image(model, test.intrinsics, test.poses[0], ray_bounds)
         render_seconds = time.perf_counter() - start
@@ -148,10 +149,11 @@ def profile_marched_step(dataset: Path, preset: str, steps: int | None, out_dir:
         "vertices": list(getattr(model.field, "vertices", ())) or None,
         "occupied_fraction": model.occupancy.occupied_fraction,
         "training": {"steps": steps, "occupancy_refresh_every": refresh_every, "seconds_per_step": step_seconds,
-                     "compiled_march": compiled_training,
+                     "compiled_march": compiled_training, "cpu_stolen_share": training_steal.share,
                      "stages": _rows(timer.seconds, train_items, train_references, TRAINING_STAGES, step_seconds,
                                      steps)},
         "render": {"view": 0, "seconds": render_seconds, "compiled_march": compiled,
+                   "cpu_stolen_share": render_steal.share,
                    "stages": _rows(render_timer.seconds, render_items, render_references, render_stages, render_seconds,
                                     1)},
         "reference_model": __doc__.split("\n\n", 1)[1].replace("\n", " ").strip(),
@@ -202,6 +204,8 @@ def profile_markdown(report: dict) -> str:
         part = report[key]
         total = part["seconds_per_step"] if key == "training" else part["seconds"]
         lines += [f"## {title}: {total * 1000:.1f} ms a {unit}", ""]
+        if steal_note(part.get("cpu_stolen_share")):
+            lines += [steal_note(part.get("cpu_stolen_share")), ""]
         if key == "training" and part.get("occupancy_refresh_every"):
             lines += [f"{part['steps']} steps timed; the occupancy grid is refreshed once in "
                       f"{part['occupancy_refresh_every']} (its cost is in \"upkeep\").", ""]

@@ -15,6 +15,7 @@ from pathlib import Path
 from nerf_contract.commands import RENDER, BackendFlag
 from nerf_contract.run_layout import RENDERS_DIR
 
+from ..core.cpu_steal import steal_note
 from ..core.devices import resolve_device
 from ..core.errors import NerfError
 from ..data.run_folder import RunFolder
@@ -98,8 +99,9 @@ def _split(args: argparse.Namespace) -> int:
                        progress=not args.no_progress, scale=args.scale)
     record = json.loads((out / RENDERS_RECORD).read_text())
     width, height = record["size"]
+    note = steal_note(record.get("cpu_stolen_share"))
     print(f"rendered {len(record['views'])} {args.split} views at {width}×{height} into {out}: "
-          f"{record['seconds_per_view']:.2f} s per view on {record['device']}")
+          f"{record['seconds_per_view']:.2f} s per view on {record['device']}" + (f". {note}" if note else ""))
     return 0
 
 

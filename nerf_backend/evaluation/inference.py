@@ -13,6 +13,7 @@ import torch
 from nerf_contract.run_layout import RENDERS_DIR
 
 from ..configs.train_config import TrainConfig
+from ..core.cpu_steal import StealMeter
 from ..core.files import write_json
 from ..core.progress import Progress
 from ..data.dataset import DatasetSplit, load_cameras, load_scene_bounds, load_split
@@ -68,12 +69,16 @@ def render_split(run: RunFolder, split: str, device: torch.device, chunk: int | 
             on_view(index)
 
     start = time.perf_counter()
-    render_poses(model, intrinsics, dataset_split.poses, stems, ray_bounds, out_dir,
-                 chunk=chunk, on_view=view_done, writer=writer)
+    with StealMeter() as steal:
+        render_poses(model, intrinsics, dataset_split.poses, stems, ray_bounds, out_dir,
+                     chunk=chunk, on_view=view_done, writer=writer)
     bar.close()
     write_json(out_dir / RENDERS_RECORD, {
         "split": split, "iteration": state["iteration"], "views": stems, "size": [intrinsics.width, intrinsics.height],
         "seconds_per_view": (time.perf_counter() - start) / len(stems), "device": str(device),
+        # The share of the cores' time a hypervisor took meanwhile (None off Linux): on a shared
+        # VM the seconds above may read slower than the machine is.
+        "cpu_stolen_share": steal.share,
         "image": "RGB over white, 8-bit PNG", "depth": "STEM_depth.exr: Z = expected ray distance, A = opacity",
     })
     return out_dir
