@@ -31,7 +31,7 @@ def load_trained_model(run: RunFolder, device: torch.device) -> tuple[Model, Ray
     iteration and training time."""
     stored = run.read_config()
     config = TrainConfig.from_dict(stored["config"])
-    state = run.load_checkpoint(device)
+    state = run.load_checkpoint(device, mapped=True)  # the model's tensors copied into it, nothing else read
     ray_bounds, _ = choose_ray_bounds(config.ray_bounds, load_scene_bounds(stored["dataset"]))
     model = build_model(config, ray_bounds.box).to(device)
     model.restore(state["model"])
@@ -98,4 +98,4 @@ def renders_are_current(run: RunFolder, split: str) -> bool:
     if not record.exists() or not run.checkpoint_path.exists():
         return False
     rendered_iteration = json.loads(record.read_text()).get("iteration")
-    return rendered_iteration == run.load_checkpoint(torch.device("cpu"))["iteration"]
+    return rendered_iteration == run.load_checkpoint(torch.device("cpu"), mapped=True)["iteration"]
