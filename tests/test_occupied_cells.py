@@ -21,7 +21,10 @@ BOX = SceneBounds((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
 def _reference(sums: torch.Tensor, above: float, shift: float, allowed: torch.Tensor | None):
     cell_max = cell_corner_max(sums.double()).permute(2, 1, 0)  # [Gx, Gy, Gz]
-    excess = lambda values: float((values + shift).clamp_min(0).nan_to_num(0.0).sum())  # noqa: E731
+
+    def excess(values: torch.Tensor) -> float:
+        return float((values + shift).clamp_min(0).nan_to_num(0.0).sum())
+
     return cells_exceeding(cell_max, above, allowed), excess(sums.double()), excess(cell_max)
 
 

@@ -256,10 +256,8 @@ class GridField(VertexOccupancy, GridAppearance, MarchableField):
         excess, count = (cell_excess, occupied.numel()) if rendering else (vertex_excess, sums.numel())
         if scale * excess / count >= threshold * (1.0 + MEAN_BOUND_SLACK):
             return occupied
-        if rendering:  # the mean of the cells' largest densities, as the rule has it
-            mean = float(self._activated_in_place(cell_corner_max(sums)).mean())
-        else:  # the mean over the vertices
-            mean = float(self.density_from_features(sums).mean())
+        # The rule's own mean: of the cells' largest densities, or over the vertices.
+        mean = float((self.cell_max_density() if rendering else self.density_from_features(sums)).mean())
         if mean >= threshold:
             return occupied
         return cells_over(sums, self._sum_above(mean), shift, allowed)[0]
