@@ -276,6 +276,67 @@ def test_bench_step_profiles_a_marched_preset_by_stage(tiny_demo_dataset, tmp_pa
     assert "## Training step" in result.stdout and "## Rendered view" in result.stdout
 
 
+
+def test_bench_step_from_a_run_times_that_state_and_shows_an_earlier_profile_beside(tiny_demo_dataset,
+                                                                                     trained_marched_run, tmp_path):
+    """--from-run: no warm-up; the steps continue a copy of the run (its preset, from its
+    iteration), the run itself untouched. --before: an earlier profile's stages beside this
+    one's, from the same state; a file that is no profile is refused by name, before anything
+    is written."""
+    checkpoint = trained_marched_run / "checkpoint.pt"
+    untouched = checkpoint.read_bytes()
+    refused = run_python("-m", "nerf_backend", "bench-step", str(tiny_demo_dataset), "--from-run",
+                         str(trained_marched_run), "--out", str(tmp_path / "elsewhere"), check=False)
+    assert refused.returncode != 0 and f"{trained_marched_run}: trained on " in refused.stderr
+    assert not (tmp_path / "elsewhere").exists()  # refused before anything is written
+    tiny_demo_dataset = Path(json.loads((trained_marched_run / "config.json").read_text())["dataset"])
+    first, second = tmp_path / "first", tmp_path / "second"
+    run_python("-m", "nerf_backend", "bench-step", str(tiny_demo_dataset), "--from-run", str(trained_marched_run),
+               "--steps", "4", "--out", str(first))
+    report = json.loads((first / "step_profile.json").read_text())
+    assert report["preset"] == "fast" and report["training"]["steps"] == 4  # the run's preset, not the default
+    assert report["warmup"] == {"iterations": 300, "seconds": pytest.approx(report["warmup"]["seconds"]),
+                                "from_run": str(trained_marched_run.resolve())}
+    assert checkpoint.read_bytes() == untouched
+    result = run_python("-m", "nerf_backend", "bench-step", str(tiny_demo_dataset), "--from-run",
+                        str(trained_marched_run), "--steps", "4", "--before", str(first / "step_profile.json"),
+                        "--out", str(second))
+    later = json.loads((second / "step_profile.json").read_text())
+    assert later["before"]["training"] == report["training"] and later["before"]["render"] == report["render"]
+    for row in later["training"]["stages"]:  # each stage's before, after and their ratio, in the page
+        old = next(r for r in report["training"]["stages"] if r["stage"] == row["stage"])
+        ratio = f"{row['seconds'] / old['seconds']:.2f}" if old["seconds"] > 0 else "—"
+        assert f"| {row['stage']} | {old['seconds'] * 1000:.2f} | {row['seconds'] * 1000:.2f} | {ratio} |" in result.stdout
+    assert "Not side by side" not in result.stdout and result.stdout.count("| stage | before ms | after ms |") == 2
+    not_a_profile = tmp_path / "config.json"
+    not_a_profile.write_text('{"preset": "fast"}')
+    refused = run_python("-m", "nerf_backend", "bench-step", str(tiny_demo_dataset), "--from-run",
+                         str(trained_marched_run), "--before", str(not_a_profile), "--out", str(tmp_path / "third"),
+                         check=False)
+    assert refused.returncode != 0 and f"{not_a_profile}: not a marched preset's bench-step profile" in refused.stderr
+    assert not (tmp_path / "third").exists()
+
+
+def test_a_profile_from_another_state_is_shown_beside_but_said_not_side_by_side():
+    """before_and_after: profiles that started at another iteration or grid are not a before
+    and after of the code; the page says so and how to make them one."""
+    from nerf_backend.bench.step_profile import before_and_after
+
+    def profile(iterations: int, vertices: list, march: float) -> dict:
+        stages = [{"stage": "march", "seconds": march, "reference_seconds": march / 4, "times_reference": 4.0}]
+        return {"commit": "abc1234", "warmup": {"iterations": iterations}, "vertices": vertices,
+                "training": {"seconds_per_step": 2 * march, "stages": stages},
+                "render": {"seconds": 10 * march, "stages": stages}}
+
+    report = profile(1000, [64, 64, 64], 0.003)
+    report["before"] = profile(1000, [64, 64, 64], 0.004)
+    lines = before_and_after(report, "training", "step")
+    assert lines[0].startswith("Before (abc1234) and after (abc1234): 8.0 → 6.0 ms a step (0.75×)")
+    assert "| march | 4.00 | 3.00 | 0.75 | 4.0 | 4.0 |" in lines and not any("Not side by side" in l for l in lines)
+    report["before"] = profile(900, [48, 48, 48], 0.004)
+    assert any(l.startswith("Not side by side: the before started at iteration 900") for l in before_and_after(
+        report, "render", "view"))
+
 def _children(pid: int) -> list[int]:
     found = []
     for entry in Path("/proc").iterdir():

@@ -26,19 +26,29 @@ The profile names the stage with the most time above its reference: where a step
 
 from __future__ import annotations
 
+import json
 import math
+import shutil
 import time
+from dataclasses import dataclass
 from pathlib import Path
+
+import torch
+from nerf_contract.run_layout import CHECKPOINT_NAME, CONFIG_NAME, EVENTS_NAME
 
 from ..core.cpu_steal import StealMeter, steal_note
 from ..core.devices import machine_record, machine_words, resolve_device
+from ..configs.presets import preset_config
 from ..core.errors import NerfError
 from ..core.files import write_json
+from ..core.provenance import source_commit
 from ..core.stage_timer import StageTimer
 from ..data.dataset import load_split
 from ..data.run_folder import RunFolder
 from ..evaluation.inference import load_trained_model
 from ..evaluation.render_views import render_image
+from ..models.marched import MarchedModel
+from ..models.registry import model_class
 from ..training.trainer import TrainOptions, train
 from ..model_components.compiled_march import COMPILED_TRAINING_MARCH
 from ..model_components.marcher import COMPILED_LIT_PASS
@@ -92,29 +102,43 @@ def _rows(seconds: dict, items: dict, references: dict, stages: tuple[str, ...],
 
 def profile_marched_step(dataset: Path, preset: str, steps: int | None, out_dir: Path, seed: int = 0,
                          warmup_seconds: float = 60.0, overrides: tuple[str, ...] = (), device_name: str = "auto",
-                         overwrite: bool = False) -> dict:
+                         overwrite: bool = False, from_run: Path | None = None, before: Path | None = None) -> dict:
     """Warm the preset up for ``warmup_seconds`` (its whole schedule laid over them, so the
     grid is at its final size and the occupancy grid has learnt the scene), time ``steps``
     more steps and one test view by stage, and write ``step_profile.json`` and ``.md``.
     ``steps`` None: the fewest whole periods of the occupancy grid's refresh that make at least
     ``DEFAULT_STEPS`` (a refresh of lego's 255³ cells costs 0.3 s once in 67 steps: 4-6 ms a
-    step, which 50 steps timed held once or not at all)."""
+    step, which 50 steps timed held once or not at all).
+
+    ``from_run``: no warm-up; the steps continue a copy of that trained run (its preset, its
+    grid, its place in its schedule), so that two versions of the code time the same state, which
+    a warm-up of so many seconds does not give them (the faster one reaches a larger grid).
+    ``before``: another profile's ``step_profile.json``, shown beside this one stage by stage
+    (the before and after of a change, side by side)."""
     if out_dir.exists() and any(out_dir.iterdir()) and not overwrite:
         raise NerfError(f"{out_dir}: bench folder exists and is not empty; pass --overwrite to replace it")
+    earlier = read_profile(before) if before is not None else None
+    origin = trained_start(from_run, Path(dataset)) if from_run is not None else None
+    if origin is not None:
+        preset = origin.preset
     out_dir.mkdir(parents=True, exist_ok=True)
     device = resolve_device(device_name)
     run_dir = out_dir / "runs" / preset
     common = dict(dataset=Path(dataset), run=run_dir, progress=False, validate=False, device=device_name)
-    warm = train(TrainOptions(**common, preset=preset, overrides=overrides, seed=seed, max_seconds=warmup_seconds,
-                              overwrite=True))
+    if origin is None:
+        warm = train(TrainOptions(**common, preset=preset, overrides=overrides, seed=seed, max_seconds=warmup_seconds,
+                                  overwrite=True))
+        origin = TrainedStart(preset, warm.iteration, warm.train_seconds, warmup_seconds, None)
+    else:
+        origin.copy_to(run_dir)
     refresh_every = load_trained_model(RunFolder(run_dir), device)[0].occupancy_refresh_every()
     if steps is None:
         steps = refresh_every * math.ceil(DEFAULT_STEPS / refresh_every)
     with StageTimer(device) as timer, StealMeter() as training_steal:
         # At the end of the warm-up's schedule (its budget spent), with its time limit lifted.
-        timed = train(TrainOptions(**common, iterations=warm.iteration + steps, resume=True,
-                                   max_seconds=1e9, schedule_seconds=warmup_seconds))
-    step_seconds = (timed.train_seconds - warm.train_seconds) / steps
+        timed = train(TrainOptions(**common, iterations=origin.iteration + steps, resume=True,
+                                   max_seconds=1e9, schedule_seconds=origin.schedule_seconds))
+    step_seconds = (timed.train_seconds - origin.train_seconds) / steps
 
     model, ray_bounds, _ = load_trained_model(RunFolder(run_dir), device)
     costs = model.field.sample_cost()
@@ -143,7 +167,9 @@ def profile_marched_step(dataset: Path, preset: str, steps: int | None, out_dir:
         "dataset": str(Path(dataset).resolve()), "preset": preset, "overrides": list(overrides), "seed": seed,
         "device": str(device), "machine": machine_record(device),
         "hardware": hardware,
-        "warmup": {"seconds": warm.train_seconds, "iterations": warm.iteration},
+        "warmup": {"seconds": origin.train_seconds, "iterations": origin.iteration,
+                   "from_run": None if origin.source is None else str(origin.source.resolve())},
+        "commit": source_commit(),
         "image_size": [test.intrinsics.width, test.intrinsics.height],
         "train_views": config["train_views"], "rays_per_batch": config["config"]["rays_per_batch"],
         "vertices": list(getattr(model.field, "vertices", ())) or None,
@@ -158,8 +184,64 @@ def profile_marched_step(dataset: Path, preset: str, steps: int | None, out_dir:
                                     1)},
         "reference_model": __doc__.split("\n\n", 1)[1].replace("\n", " ").strip(),
     }
+    if earlier is not None:
+        report["before"] = {key: earlier.get(key) for key in ("commit", "warmup", "vertices", "hardware", "training",
+                                                              "render")}
+        report["before"]["path"] = str(Path(before).resolve())
     write_json(out_dir / "step_profile.json", report)
     (out_dir / "step_profile.md").write_text(profile_markdown(report))
+    return report
+
+
+@dataclass(frozen=True)
+class TrainedStart:
+    """Where the timed steps begin: a warm-up just trained, or a copy of a trained run."""
+
+    preset: str
+    iteration: int
+    train_seconds: float
+    schedule_seconds: float | None  # the time budget its schedule is laid over (None: by iterations)
+    source: Path | None  # the run it was copied from
+
+    def copy_to(self, run_dir: Path) -> None:
+        """The run's configuration, checkpoint and log into ``run_dir`` (not its renders): the
+        copy trains on, the run itself is left as it was."""
+        run_dir.mkdir(parents=True, exist_ok=True)
+        for name in (CONFIG_NAME, CHECKPOINT_NAME, EVENTS_NAME):
+            if (self.source / name).exists():
+                shutil.copyfile(self.source / name, run_dir / name)
+
+
+def trained_start(run: Path, dataset: Path) -> TrainedStart:
+    """A trained run to time steps from on ``dataset`` (``bench-step --from-run``), or NerfError
+    naming the folder and what does not fit."""
+    folder = RunFolder(run)
+    config = folder.read_config()
+    if Path(config["dataset"]) != dataset.resolve():
+        raise NerfError(f"{run}: trained on {config['dataset']}, not {dataset}; --from-run continues it on its own "
+                        f"dataset")
+    if not folder.checkpoint_path.exists():
+        raise NerfError(f"{run}: no {CHECKPOINT_NAME}; --from-run takes a trained run folder")
+    model = model_class(preset_config(config["preset"]).model)
+    if not issubclass(model, MarchedModel):
+        raise NerfError(f"{run}: its preset {config['preset']!r} is not a marched one; bench-step profiles "
+                        f"marched presets by stage")
+    state = folder.load_checkpoint(torch.device("cpu"), mapped=True)
+    return TrainedStart(config["preset"], int(state["iteration"]), float(state["train_seconds"]),
+                        config.get("schedule_seconds") or config.get("max_seconds"), Path(run))
+
+
+def read_profile(path: Path) -> dict:
+    """An earlier ``step_profile.json``, or NerfError naming the file and what is wrong with it."""
+    try:
+        report = json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise NerfError(f"{path}: cannot read it ({exc.strerror or exc}); --before takes a step_profile.json") from None
+    except json.JSONDecodeError as exc:
+        raise NerfError(f"{path}: not JSON (line {exc.lineno}: {exc.msg}); --before takes a step_profile.json") from None
+    if not isinstance(report, dict) or not all(isinstance(report.get(key), dict) and "stages" in report[key]
+                                               for key in ("training", "render")):
+        raise NerfError(f"{path}: not a marched preset's bench-step profile (no training and render stages)")
     return report
 
 
@@ -230,5 +312,39 @@ def profile_markdown(report: dict) -> str:
             lines += ["", f"Farthest from its limit: {farthest['stage']}, "
                           f"{(farthest['seconds'] - farthest['reference_seconds']) * 1000:.2f} ms above its reference "
                           f"({farthest['times_reference']:.1f}×)."]
+        if report.get("before"):
+            lines += [""] + before_and_after(report, key, unit)
         lines.append("")
     return "\n".join(lines)
+
+
+def before_and_after(report: dict, key: str, unit: str) -> list[str]:
+    """The ``before`` profile's stages beside this one's, for the training step or the view
+    (``key``), and whether the two started from the same state."""
+    before = report["before"]
+    part, earlier = report[key], before[key]
+    total = part["seconds_per_step"] if key == "training" else part["seconds"]
+    total_before = earlier["seconds_per_step"] if key == "training" else earlier["seconds"]
+    rows = {row["stage"]: row for row in earlier["stages"]}
+    lines = [f"Before ({before.get('commit') or 'commit not recorded'}) and after "
+             f"({report.get('commit') or 'commit not recorded'}): {total_before * 1000:.1f} → {total * 1000:.1f} ms a "
+             f"{unit} ({total / total_before:.2f}×).", ""]
+    same = (before.get("warmup", {}).get("iterations") == report["warmup"]["iterations"]
+            and before.get("vertices") == report["vertices"])
+    if not same:
+        lines += [f"Not side by side: the before started at iteration {before.get('warmup', {}).get('iterations')} "
+                  f"with grid vertices {before.get('vertices')}, this one at {report['warmup']['iterations']} with "
+                  f"{report['vertices']} (`--from-run` starts both from the same run).", ""]
+    lines += ["| stage | before ms | after ms | after / before | × reference before | × reference after |",
+              "| --- | ---: | ---: | ---: | ---: | ---: |"]
+
+    def times(row: dict | None) -> str:
+        return "—" if row is None or row.get("times_reference") is None else f"{row['times_reference']:.1f}"
+
+    for row in part["stages"]:
+        old = rows.get(row["stage"])
+        old_ms = "—" if old is None else f"{old['seconds'] * 1000:.2f}"
+        ratio = "—" if old is None or old["seconds"] <= 0 else f"{row['seconds'] / old['seconds']:.2f}"
+        lines.append(f"| {row['stage']} | {old_ms} | {row['seconds'] * 1000:.2f} | {ratio} | {times(old)} | "
+                     f"{times(row)} |")
+    return lines

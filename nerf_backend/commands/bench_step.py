@@ -33,6 +33,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="marched presets: training before the timed steps, the whole schedule laid over it")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="marched presets: change a setting of the preset")
+    parser.add_argument("--from-run", type=Path, default=None, metavar="RUN",
+                        help="marched presets: no warm-up; time steps continuing a copy of this trained run (its "
+                             "preset), so that two versions of the code time the same state")
+    parser.add_argument("--before", type=Path, default=None, metavar="STEP_PROFILE_JSON",
+                        help="marched presets: an earlier step_profile.json to show beside this one, stage by stage")
     add_device(parser)
     add_seed(parser)
     parser.add_argument(BackendFlag.OUT, type=Path, required=True, help="folder for the timings (JSON and Markdown)")
@@ -41,8 +46,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if issubclass(model_class(preset_config(args.preset).model), MarchedModel):
+    if args.from_run is not None or issubclass(model_class(preset_config(args.preset).model), MarchedModel):
         return _profile_marched(args)
+    if args.before is not None:
+        raise NerfError("bench-step --before: a marched preset's profile is compared by stage; a NeRF preset's is not")
     if args.overrides:
         raise NerfError("bench-step: --set applies to marched presets; a NeRF preset is measured as it is")
     if args.page is not None:
@@ -59,9 +66,12 @@ def run(args: argparse.Namespace) -> int:
 
 def _profile_marched(args: argparse.Namespace) -> int:
     overrides = tuple(args.overrides) + ((f"rays_per_batch={args.rays}",) if args.rays else ())
+    if args.from_run is not None and overrides:
+        raise NerfError("bench-step --from-run: the run's own settings are timed; --set and --rays apply to a new "
+                        "warm-up")
     profile_marched_step(args.dataset, args.preset, args.steps, args.out, seed=args.seed,
                          warmup_seconds=args.warmup_seconds, overrides=overrides, device_name=args.device,
-                         overwrite=args.overwrite)
+                         overwrite=args.overwrite, from_run=args.from_run, before=args.before)
     print((args.out / "step_profile.md").read_text(), end="")
     publish(args, args.out / "step_profile.md")
     print(f"written {args.out / 'step_profile.json'}, {args.out / 'step_profile.md'}")
