@@ -67,6 +67,8 @@ ADAM_BYTES_PER_VALUE = 7 * 4
 ADAM_ARRAYS = 4
 # Steps timed at the least: the default is the fewest whole periods of the occupancy refresh.
 DEFAULT_STEPS = 50
+# What a profile keeps of the earlier one it is shown beside (--before).
+BEFORE_KEYS = ("commit", "warmup", "vertices", "hardware", "training", "render")
 
 
 def _reference(hardware: dict, flops: float = 0.0, bytes_moved: float = 0.0, lines: float = 0.0) -> float:
@@ -125,20 +127,11 @@ def profile_marched_step(dataset: Path, preset: str, steps: int | None, out_dir:
     device = resolve_device(device_name)
     run_dir = out_dir / "runs" / preset
     common = dict(dataset=Path(dataset), run=run_dir, progress=False, validate=False, device=device_name)
-    if origin is None:
-        warm = train(TrainOptions(**common, preset=preset, overrides=overrides, seed=seed, max_seconds=warmup_seconds,
-                                  overwrite=True))
-        origin = TrainedStart(preset, warm.iteration, warm.train_seconds, warmup_seconds, None)
-    else:
-        origin.copy_to(run_dir)
+    origin = origin.copy_to(run_dir) if origin is not None else warmed_up(common, preset, overrides, seed,
+                                                                            warmup_seconds)
     refresh_every = load_trained_model(RunFolder(run_dir), device)[0].occupancy_refresh_every()
-    if steps is None:
-        steps = refresh_every * math.ceil(DEFAULT_STEPS / refresh_every)
-    with StageTimer(device) as timer, StealMeter() as training_steal:
-        # At the end of the warm-up's schedule (its budget spent), with its time limit lifted.
-        timed = train(TrainOptions(**common, iterations=origin.iteration + steps, resume=True,
-                                   max_seconds=1e9, schedule_seconds=origin.schedule_seconds))
-    step_seconds = (timed.train_seconds - origin.train_seconds) / steps
+    steps = steps or refresh_every * math.ceil(DEFAULT_STEPS / refresh_every)
+    step_seconds, timer, training_steal = _timed_steps(origin, steps, common, device)
 
     model, ray_bounds, _ = load_trained_model(RunFolder(run_dir), device)
     costs = model.field.sample_cost()
@@ -185,12 +178,19 @@ def profile_marched_step(dataset: Path, preset: str, steps: int | None, out_dir:
         "reference_model": __doc__.split("\n\n", 1)[1].replace("\n", " ").strip(),
     }
     if earlier is not None:
-        report["before"] = {key: earlier.get(key) for key in ("commit", "warmup", "vertices", "hardware", "training",
-                                                              "render")}
-        report["before"]["path"] = str(Path(before).resolve())
+        report["before"] = {**{key: earlier.get(key) for key in BEFORE_KEYS}, "path": str(Path(before).resolve())}
     write_json(out_dir / "step_profile.json", report)
     (out_dir / "step_profile.md").write_text(profile_markdown(report))
     return report
+
+
+def _timed_steps(origin: "TrainedStart", steps: int, common: dict, device) -> tuple[float, StageTimer, StealMeter]:
+    """``steps`` more steps of the run, by stage: at the end of its schedule (its budget spent),
+    with its time limit lifted. Returns the seconds a step, the stages' timer and the steal."""
+    with StageTimer(device) as timer, StealMeter() as steal:
+        timed = train(TrainOptions(**common, iterations=origin.iteration + steps, resume=True,
+                                   max_seconds=1e9, schedule_seconds=origin.schedule_seconds))
+    return (timed.train_seconds - origin.train_seconds) / steps, timer, steal
 
 
 @dataclass(frozen=True)
@@ -203,13 +203,21 @@ class TrainedStart:
     schedule_seconds: float | None  # the time budget its schedule is laid over (None: by iterations)
     source: Path | None  # the run it was copied from
 
-    def copy_to(self, run_dir: Path) -> None:
+    def copy_to(self, run_dir: Path) -> "TrainedStart":
         """The run's configuration, checkpoint and log into ``run_dir`` (not its renders): the
         copy trains on, the run itself is left as it was."""
         run_dir.mkdir(parents=True, exist_ok=True)
         for name in (CONFIG_NAME, CHECKPOINT_NAME, EVENTS_NAME):
             if (self.source / name).exists():
                 shutil.copyfile(self.source / name, run_dir / name)
+        return self
+
+
+def warmed_up(common: dict, preset: str, overrides: tuple[str, ...], seed: int, seconds: float) -> TrainedStart:
+    """A new run of ``preset`` trained for ``seconds``, its whole schedule laid over them."""
+    warm = train(TrainOptions(**common, preset=preset, overrides=overrides, seed=seed, max_seconds=seconds,
+                              overwrite=True))
+    return TrainedStart(preset, warm.iteration, warm.train_seconds, seconds, None)
 
 
 def trained_start(run: Path, dataset: Path) -> TrainedStart:
