@@ -339,20 +339,27 @@ def before_and_after(report: dict, key: str, unit: str) -> list[str]:
              f"{unit} ({total / total_before:.2f}×).", ""]
     same = (before.get("warmup", {}).get("iterations") == report["warmup"]["iterations"]
             and before.get("vertices") == report["vertices"])
-    if not same:
+    if same:
+        # The same work: both against this run's references, so that the rates' own noise between
+        # the two measurements (a tenth to a third on the VMs here) does not move the comparison.
+        lines += ["Both × reference columns at this run's measured rates (the two did the same work, from the "
+                  "same start).", ""]
+    else:
         lines += [f"Not side by side: the before started at iteration {before.get('warmup', {}).get('iterations')} "
                   f"with grid vertices {before.get('vertices')}, this one at {report['warmup']['iterations']} with "
                   f"{report['vertices']} (`--from-run` starts both from the same run).", ""]
     lines += ["| stage | before ms | after ms | after / before | × reference before | × reference after |",
               "| --- | ---: | ---: | ---: | ---: | ---: |"]
 
-    def times(row: dict | None) -> str:
-        return "—" if row is None or row.get("times_reference") is None else f"{row['times_reference']:.1f}"
+    def times(seconds: float, row: dict | None) -> str:
+        reference = None if row is None else row.get("reference_seconds")
+        return "—" if not reference else f"{seconds / reference:.1f}"
 
     for row in part["stages"]:
         old = rows.get(row["stage"])
         old_ms = "—" if old is None else f"{old['seconds'] * 1000:.2f}"
         ratio = "—" if old is None or old["seconds"] <= 0 else f"{row['seconds'] / old['seconds']:.2f}"
-        lines.append(f"| {row['stage']} | {old_ms} | {row['seconds'] * 1000:.2f} | {ratio} | {times(old)} | "
-                     f"{times(row)} |")
+        old_times = "—" if old is None else times(old["seconds"], row if same else old)
+        lines.append(f"| {row['stage']} | {old_ms} | {row['seconds'] * 1000:.2f} | {ratio} | {old_times} | "
+                     f"{times(row['seconds'], row)} |")
     return lines
