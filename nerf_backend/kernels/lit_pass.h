@@ -114,6 +114,12 @@ typedef struct {
     int32_t owned_count;
 } LitGrids;
 
+/* The backward adds into rows (values read, gradients read and written) and waits on them more
+ * than the forward, which reads: asked 12 samples ahead, not vm_grid.c's 6 (lego's ten-minute
+ * model continued for 4 000 steps, the builds chosen at random a step: 0.964× and 0.970× the
+ * backward's time in two runs, the forward's within 1 %; 9 and 16 ahead 0.98×). */
+#define LIT_BACKWARD_AHEAD 12
+
 static void *lit_grids_backward_work(void *arg) {
     const LitGrids *w = (const LitGrids *)arg;
     const LitPass *p = w->p;
@@ -122,9 +128,9 @@ static void *lit_grids_backward_work(void *arg) {
         if (index < 3) {
             const Component *m = &p->density[index];
             for (int64_t i = 0; i < p->samples; ++i) {
-                if (PREFETCH_AHEAD && i + PREFETCH_AHEAD < p->samples) {
-                    prefetch_rows(m, p->record + (i + PREFETCH_AHEAD) * RECORD_WIDTH + 3, 0);
-                    prefetch_rows(m, p->record + (i + PREFETCH_AHEAD) * RECORD_WIDTH + 3, 1);
+                if (LIT_BACKWARD_AHEAD && i + LIT_BACKWARD_AHEAD < p->samples) {
+                    prefetch_rows(m, p->record + (i + LIT_BACKWARD_AHEAD) * RECORD_WIDTH + 3, 0);
+                    prefetch_rows(m, p->record + (i + LIT_BACKWARD_AHEAD) * RECORD_WIDTH + 3, 1);
                 }
                 backward_sample(m, p->record + i * RECORD_WIDTH + 3, p->grad_sum + i, 1);
             }
@@ -133,9 +139,9 @@ static void *lit_grids_backward_work(void *arg) {
             int64_t column = 0;
             for (int c = 0; c < index - 3; ++c) column += p->appearance[c].channels;
             for (int64_t i = 0; i < p->coloured; ++i) {
-                if (PREFETCH_AHEAD && i + PREFETCH_AHEAD < p->coloured) {
-                    prefetch_rows(m, p->coloured_points + 3 * (i + PREFETCH_AHEAD), 0);
-                    prefetch_rows(m, p->coloured_points + 3 * (i + PREFETCH_AHEAD), 1);
+                if (LIT_BACKWARD_AHEAD && i + LIT_BACKWARD_AHEAD < p->coloured) {
+                    prefetch_rows(m, p->coloured_points + 3 * (i + LIT_BACKWARD_AHEAD), 0);
+                    prefetch_rows(m, p->coloured_points + 3 * (i + LIT_BACKWARD_AHEAD), 1);
                 }
                 backward_sample(m, p->coloured_points + 3 * i, p->grad_features + i * p->width + column, 0);
             }
