@@ -23,6 +23,7 @@
 #include <string.h>
 
 #include "occupancy_bricks.h"
+#include "step_lanes.h"
 
 enum { ACTIVATION_SOFTPLUS = 0, ACTIVATION_LAPLACE = 1, ACTIVATION_NEUS = 2 };
 
@@ -134,23 +135,9 @@ typedef struct {
     char padding[64];             /* each thread's counters on cache lines of their own */
 } MarchThread;
 
-/* A march's steps are looked up 8 at a time (GCC's and Clang's vector extension: AVX2 on x86,
- * NEON pairs on ARM): their midpoints, whether they lie in the grid, their cells' bricks and
- * bits, with the same float operations as one step at a time (-std=c99 contracts none into
- * FMAs), so the same steps are read. One at a time, each step's lookup was a chain of scalar
- * operations and an unpredictable branch, about 40 % of lego's render march. */
-#define LANES 8
-typedef float lanes_f __attribute__((vector_size(LANES * sizeof(float))));
-typedef int32_t lanes_i __attribute__((vector_size(LANES * sizeof(int32_t))));
-
-static inline lanes_f select_f(lanes_i take, lanes_f a, lanes_f b) {
-    return (lanes_f)((take & (lanes_i)a) | (~take & (lanes_i)b));
-}
-
-static inline lanes_f splat_lanes(float x) {
-    const lanes_f v = {x, x, x, x, x, x, x, x};
-    return v;
-}
+/* A march's steps are looked up 8 at a time (step_lanes.h): their midpoints, whether they lie
+ * in the grid, their cells' bricks and bits. One at a time, each step's lookup was a chain of
+ * scalar operations and an unpredictable branch, about 40 % of lego's render march. */
 
 typedef struct {
     float near, far, step;
@@ -163,27 +150,27 @@ typedef struct {
  * steps before it. */
 static inline uint32_t occupied_steps(const RaySteps *f, const uint8_t *occupied, int64_t first, int32_t lanes,
                                       int *ended, int64_t *valid) {
-    const lanes_i offsets = {0, 1, 2, 3, 4, 5, 6, 7};
-    const lanes_f u = __builtin_convertvector((int32_t)first + offsets, lanes_f);
-    const lanes_f far = splat_lanes(f->far), zero = splat_lanes(0.0f);
-    lanes_f t_lo = f->near + u * f->step;
-    t_lo = select_f(t_lo > far, far, t_lo);
-    lanes_f t_hi = t_lo + f->step;
-    t_hi = select_f(t_hi > far, far, t_hi);
-    const lanes_f delta = t_hi - t_lo;
-    const lanes_f t_mid = t_lo + 0.5f * delta;
-    lanes_i keep = delta > 0.0f;
-    lanes_i cell[3];
+    const step_lanes_i offsets = {0, 1, 2, 3, 4, 5, 6, 7};
+    const step_lanes_f u = __builtin_convertvector((int32_t)first + offsets, step_lanes_f);
+    const step_lanes_f far = step_splat(f->far), zero = step_splat(0.0f);
+    step_lanes_f t_lo = f->near + u * f->step;
+    t_lo = step_select(t_lo > far, far, t_lo);
+    step_lanes_f t_hi = t_lo + f->step;
+    t_hi = step_select(t_hi > far, far, t_hi);
+    const step_lanes_f delta = t_hi - t_lo;
+    const step_lanes_f t_mid = t_lo + 0.5f * delta;
+    step_lanes_i keep = delta > 0.0f;
+    step_lanes_i cell[3];
     for (int axis = 0; axis < 3; ++axis) {
-        const lanes_f units = f->start[axis] + f->along[axis] * t_mid;
+        const step_lanes_f units = f->start[axis] + f->along[axis] * t_mid;
         keep &= (units >= 0.0f) & (units <= f->cell_count[axis]);
-        const lanes_f last = splat_lanes(f->last_cell[axis]);
-        const lanes_f clamped = select_f(units >= 0.0f, select_f(units > last, last, units), zero);
-        cell[axis] = __builtin_convertvector(clamped, lanes_i);  /* NaN went to 0, as clampf's */
+        const step_lanes_f last = step_splat(f->last_cell[axis]);
+        const step_lanes_f clamped = step_select(units >= 0.0f, step_select(units > last, last, units), zero);
+        cell[axis] = __builtin_convertvector(clamped, step_lanes_i);  /* NaN went to 0, as clampf's */
     }
-    const lanes_i byte = ((((cell[0] >> 3) * f->bricks_y + (cell[1] >> 3)) * f->bricks_z + (cell[2] >> 3)) << 6)
+    const step_lanes_i byte = ((((cell[0] >> 3) * f->bricks_y + (cell[1] >> 3)) * f->bricks_z + (cell[2] >> 3)) << 6)
                          + ((cell[0] & 7) << 3) + (cell[1] & 7);
-    const lanes_i bit = cell[2] & 7;
+    const step_lanes_i bit = cell[2] & 7;
     uint32_t found = 0;
     int64_t counted = 0;
     for (int j = 0; j < lanes; ++j) {
@@ -246,8 +233,8 @@ static int march_ray(MarchJob *job, MarchThread *thread, int64_t r) {
         int64_t last = (k + 1) * span;
         if (last > steps - 1) last = steps - 1;
         int ended = 0;
-        for (int64_t first = k * span; first < last && !ended && !stopped; first += LANES) {
-          const int32_t lanes = last - first < LANES ? (int32_t)(last - first) : LANES;
+        for (int64_t first = k * span; first < last && !ended && !stopped; first += STEP_LANES) {
+          const int32_t lanes = last - first < STEP_LANES ? (int32_t)(last - first) : STEP_LANES;
           for (uint32_t found = occupied_steps(&frame, occupied, first, lanes, &ended, &looked_up); found;
                found &= found - 1) {
             const int64_t u = first + __builtin_ctz(found);

@@ -4,6 +4,7 @@
  * <string.h>. */
 
 #include "occupancy_bricks.h"
+#include "step_lanes.h"
 
 /* The training march of a grid field, in one pass a ray, shared by the kernels of the fields
  * whose density it reads (vm_grid.c, sparse_grid.c). The including file defines, before
@@ -92,25 +93,10 @@ static inline int composite_waiting(TrainMarchWork *w, int64_t r, const Waiting 
     return 0;
 }
 
-/* A ray's steps are looked up 8 at a time (GCC's and Clang's vector extension, as
- * march_render.c's occupied_steps): their bounds, midpoints, whether they lie in the box, their
- * cells, blocks and bits, with the same float operations as one step at a time (-std=c99
- * contracts none into FMAs), so the same samples are found. One at a time, each step was a
- * chain of scalar operations and an unpredictable branch, and 88 % of lego's steps hold
- * nothing. */
-#define STEP_LANES 8
-typedef float step_lanes_f __attribute__((vector_size(STEP_LANES * sizeof(float))));
-typedef int32_t step_lanes_i __attribute__((vector_size(STEP_LANES * sizeof(int32_t))));
-
-static inline step_lanes_f step_select(step_lanes_i take, step_lanes_f a, step_lanes_f b) {
-    return (step_lanes_f)((take & (step_lanes_i)a) | (~take & (step_lanes_i)b));
-}
-
-static inline step_lanes_f step_splat(float x) {
-    const step_lanes_f v = {x, x, x, x, x, x, x, x};
-    return v;
-}
-
+/* A ray's steps are looked up 8 at a time (step_lanes.h), as the render march's are: their
+ * bounds, midpoints, whether they lie in the box, their cells, blocks and bits. One at a time,
+ * each step was a chain of scalar operations and an unpredictable branch, and 88 % of lego's
+ * steps hold nothing. */
 typedef struct {
     float near, far, offset, step;
     float origin[3], direction[3], box_min[3], box_max[3], inverse_extent[3], cell_count[3], last_cell[3];
