@@ -306,7 +306,8 @@ def test_bench_step_from_a_run_times_that_state_and_shows_an_earlier_profile_bes
     for row in later["training"]["stages"]:  # each stage's before, after and their ratio, in the page
         old = next(r for r in report["training"]["stages"] if r["stage"] == row["stage"])
         ratio = f"{row['seconds'] / old['seconds']:.2f}" if old["seconds"] > 0 else "—"
-        assert f"| {row['stage']} | {old['seconds'] * 1000:.2f} | {row['seconds'] * 1000:.2f} | {ratio} |" in result.stdout
+        expected = f"| {row['stage']} | {old['seconds'] * 1000:.2f} | {row['seconds'] * 1000:.2f} | {ratio} |"
+        assert expected in result.stdout
     assert "Not side by side" not in result.stdout and result.stdout.count("| stage | before ms | after ms |") == 2
     not_a_profile = tmp_path / "config.json"
     not_a_profile.write_text('{"preset": "fast"}')
@@ -324,7 +325,8 @@ def test_a_profile_from_another_state_is_shown_beside_but_said_not_side_by_side(
 
     def profile(iterations: int, vertices: list, march: float) -> dict:
         stages = [{"stage": "march", "seconds": march, "reference_seconds": march / 4, "times_reference": 4.0}]
-        return {"commit": "abc1234", "warmup": {"iterations": iterations}, "vertices": vertices,
+        return {"commit": "abc1234", "warmup": {"iterations": iterations, "from_run": "/runs/ten"},
+                "vertices": vertices,
                 "training": {"seconds_per_step": 2 * march, "stages": stages},
                 "render": {"seconds": 10 * march, "stages": stages}}
 
@@ -338,6 +340,10 @@ def test_a_profile_from_another_state_is_shown_beside_but_said_not_side_by_side(
     lines = before_and_after(report, "render", "view")
     assert any(l.startswith("Not side by side: the before started at iteration 900") for l in lines)
     assert "| march | 4.00 | 3.00 | 0.75 | 4.0 | 4.0 |" in lines  # each against its own reference
+    report["before"] = profile(1000, [64, 64, 64], 0.004)
+    report["before"]["warmup"]["from_run"] = None  # the same count of steps, but from a warm-up of its own
+    assert any(l.startswith("Not side by side") and "(from a warm-up)" in l for l in before_and_after(
+        report, "training", "step"))
 
 def _children(pid: int) -> list[int]:
     found = []

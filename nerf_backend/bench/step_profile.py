@@ -244,9 +244,9 @@ def read_profile(path: Path) -> dict:
     try:
         report = json.loads(Path(path).read_text())
     except OSError as exc:
-        raise NerfError(f"{path}: cannot read it ({exc.strerror or exc}); --before takes a step_profile.json") from None
+        raise NerfError(f"{path}: cannot read it ({exc.strerror or exc}); --before takes step_profile.json") from None
     except json.JSONDecodeError as exc:
-        raise NerfError(f"{path}: not JSON (line {exc.lineno}: {exc.msg}); --before takes a step_profile.json") from None
+        raise NerfError(f"{path}: not JSON (line {exc.lineno}: {exc.msg}); --before takes step_profile.json") from None
     if not isinstance(report, dict) or not all(isinstance(report.get(key), dict) and "stages" in report[key]
                                                for key in ("training", "render")):
         raise NerfError(f"{path}: not a marched preset's bench-step profile (no training and render stages)")
@@ -337,17 +337,20 @@ def before_and_after(report: dict, key: str, unit: str) -> list[str]:
     lines = [f"Before ({before.get('commit') or 'commit not recorded'}) and after "
              f"({report.get('commit') or 'commit not recorded'}): {total_before * 1000:.1f} → {total * 1000:.1f} ms a "
              f"{unit} ({total / total_before:.2f}×).", ""]
-    same = (before.get("warmup", {}).get("iterations") == report["warmup"]["iterations"]
-            and before.get("vertices") == report["vertices"])
+    started = before.get("warmup", {})
+    same = (started.get("iterations") == report["warmup"]["iterations"] and before.get("vertices") == report["vertices"]
+            and started.get("from_run") == report["warmup"].get("from_run"))
     if same:
         # The same work: both against this run's references, so that the rates' own noise between
         # the two measurements (a tenth to a third on the VMs here) does not move the comparison.
         lines += ["Both × reference columns at this run's measured rates (the two did the same work, from the "
                   "same start).", ""]
     else:
-        lines += [f"Not side by side: the before started at iteration {before.get('warmup', {}).get('iterations')} "
-                  f"with grid vertices {before.get('vertices')}, this one at {report['warmup']['iterations']} with "
-                  f"{report['vertices']} (`--from-run` starts both from the same run).", ""]
+        lines += [f"Not side by side: the before started at iteration {started.get('iterations')} "
+                  f"with grid vertices {before.get('vertices')} (from {started.get('from_run') or 'a warm-up'}), this "
+                  f"one at {report['warmup']['iterations']} with {report['vertices']} (from "
+                  f"{report['warmup'].get('from_run') or 'a warm-up'}); `--from-run` starts both from the same run.",
+                  ""]
     lines += ["| stage | before ms | after ms | after / before | × reference before | × reference after |",
               "| --- | ---: | ---: | ---: | ---: | ---: |"]
 
