@@ -20,7 +20,7 @@ from PIL import Image
 from conftest import REPO_ROOT, run_python
 from nerf_backend.bench import Variant, ablation_order, ablation_variants, time_to_reach
 from nerf_backend.configs.presets import PRESETS
-from nerf_backend.data.run_folder import LOCK_NAME
+from nerf_backend.data.run_folder import LOCK_NAME, RunFolder
 from nerf_backend.fields.mlp_field import NerfField
 from nerf_backend.kernels.build import load_kernel
 from nerf_backend.bench.plain_nerf import PlainMLP, fourier_features
@@ -283,13 +283,13 @@ def test_bench_step_from_a_run_times_that_state_and_shows_an_earlier_profile_bes
     iteration), the run itself untouched. --before: an earlier profile's stages beside this
     one's, from the same state; a file that is no profile is refused by name, before anything
     is written."""
-    checkpoint = trained_marched_run / "checkpoint.pt"
+    checkpoint = RunFolder(trained_marched_run).checkpoint_path
     untouched = checkpoint.read_bytes()
     refused = run_python("-m", "nerf_backend", "bench-step", str(tiny_demo_dataset), "--from-run",
                          str(trained_marched_run), "--out", str(tmp_path / "elsewhere"), check=False)
     assert refused.returncode != 0 and f"{trained_marched_run}: trained on " in refused.stderr
     assert not (tmp_path / "elsewhere").exists()  # refused before anything is written
-    tiny_demo_dataset = Path(json.loads((trained_marched_run / "config.json").read_text())["dataset"])
+    tiny_demo_dataset = Path(RunFolder(trained_marched_run).read_config()["dataset"])
     first, second = tmp_path / "first", tmp_path / "second"
     run_python("-m", "nerf_backend", "bench-step", str(tiny_demo_dataset), "--from-run", str(trained_marched_run),
                "--steps", "4", "--out", str(first))
@@ -309,7 +309,7 @@ def test_bench_step_from_a_run_times_that_state_and_shows_an_earlier_profile_bes
         expected = f"| {row['stage']} | {old['seconds'] * 1000:.2f} | {row['seconds'] * 1000:.2f} | {ratio} |"
         assert expected in result.stdout
     assert "Not side by side" not in result.stdout and result.stdout.count("| stage | before ms | after ms |") == 2
-    not_a_profile = tmp_path / "config.json"
+    not_a_profile = tmp_path / "not_a_profile.json"
     not_a_profile.write_text('{"preset": "fast"}')
     refused = run_python("-m", "nerf_backend", "bench-step", str(tiny_demo_dataset), "--from-run",
                          str(trained_marched_run), "--before", str(not_a_profile), "--out", str(tmp_path / "third"),

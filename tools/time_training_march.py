@@ -1,7 +1,8 @@
 """The compiled training march alone (``kernels/train_march.h``'s ``march_train``), timed on a
 trained run's occupancy grid and density with batches of its dataset's training rays: what
-``bench-step``'s "march" stage holds without the rest of a step, and with the model's state
-fixed (``bench-step`` trains for a time first, so two codes reach different grids).
+``bench-step``'s "march" stage holds without the rest of a step, on the run's fixed state
+(as ``bench-step --from-run RUN`` times the whole step; without it, ``bench-step`` trains for a
+time first, so two codes reach different grids).
 
     python tools/time_training_march.py RUN DATASET [--rays 2048] [--batches 40] [--repeats 8]
                                         [--threads 2]
