@@ -209,6 +209,32 @@ def test_the_compiled_inference_compositing_adds_each_samples_weighted_features(
     assert float((out - expected).abs().max()) <= 1e-5 * float(expected.abs().max())
 
 
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_the_compiled_compositing_on_threads_keeps_each_rays_sum_whole(threads, monkeypatch):
+    """Each thread takes a run of whole rays (its share's end moved on to a ray's start): with
+    rays of 1 to 3 000 samples, some longer than a thread's share, every ray's row is its
+    samples' sum, the same bits whatever the threads."""
+    field = _field(deferred=True, wall=False, seed=8)
+    features_fn = field.ray_features(torch.zeros(1, 3))
+    generator = torch.Generator().manual_seed(9)
+    lengths = torch.cat([torch.tensor([1023, 1, 3000, 1024, 2049]), torch.randint(1, 40, (300,), generator=generator)])
+    ray = torch.repeat_interleave(torch.arange(lengths.numel()), lengths)
+    points = ray.numel()
+    x = (torch.rand(points, 3, generator=generator) * 2 - 1) * torch.tensor([1.0, 1.0, 0.5])
+    weight = torch.rand(points, generator=generator)
+    rows = {}
+    for count in sorted({1, threads}):
+        monkeypatch.setattr(torch, "get_num_threads", lambda count=count: count)
+        rows[count] = torch.zeros(lengths.numel(), field.appearance_grid.out_dims)
+        features_fn.composite(x, ray, weight, rows[count])
+    with torch.no_grad():
+        expected = torch.zeros_like(rows[1]).index_add_(0, ray, weight[:, None] * field.appearance_grid._forward_rows(
+            field.normalise(x)))
+    assert points > 3 * 4096  # enough for the call to use every thread asked for
+    assert torch.equal(rows[threads], rows[1])
+    assert float((rows[threads] - expected).abs().max()) <= 1e-5 * float(expected.abs().max())
+
 def _model(seed: int = 3):
     return deferred_grid_model(BOX, seed)
 
