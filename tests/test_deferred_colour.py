@@ -209,7 +209,6 @@ def test_the_compiled_inference_compositing_adds_each_samples_weighted_features(
     assert float((out - expected).abs().max()) <= 1e-5 * float(expected.abs().max())
 
 
-
 @pytest.mark.parametrize("threads", [1, 2, 3])
 def test_the_compiled_compositing_on_threads_keeps_each_rays_sum_whole(threads, monkeypatch):
     """Each thread takes a run of whole rays (its share's end moved on to a ray's start): with
@@ -234,6 +233,7 @@ def test_the_compiled_compositing_on_threads_keeps_each_rays_sum_whole(threads, 
     assert points > 3 * 4096  # enough for the call to use every thread asked for
     assert torch.equal(rows[threads], rows[1])
     assert float((rows[threads] - expected).abs().max()) <= 1e-5 * float(expected.abs().max())
+
 
 def _model(seed: int = 3):
     return deferred_grid_model(BOX, seed)
