@@ -203,10 +203,15 @@ def test_the_compiled_inference_compositing_adds_each_samples_weighted_features(
     weight = torch.rand(4000, generator=generator)
     out = torch.zeros(50, field.appearance_grid.out_dims)
     features_fn.composite(x, ray, weight, out)
-    with torch.no_grad():
-        expected = torch.zeros_like(out).index_add_(0, ray, weight[:, None] * field.appearance_grid._forward_rows(
-            field.normalise(x)))
+    expected = _composited_through_pytorch(field, x, ray, weight, rays=50)
     assert float((out - expected).abs().max()) <= 1e-5 * float(expected.abs().max())
+
+
+def _composited_through_pytorch(field, x, ray, weight, rays: int):
+    """Each ray's row: the sum of its samples' weighted appearance features, read by PyTorch."""
+    with torch.no_grad():
+        features = field.appearance_grid._forward_rows(field.normalise(x))
+        return torch.zeros(rays, features.shape[1]).index_add_(0, ray, weight[:, None] * features)
 
 
 @pytest.mark.parametrize("threads", [1, 2, 3])
@@ -227,10 +232,9 @@ def test_the_compiled_compositing_on_threads_keeps_each_rays_sum_whole(threads, 
         monkeypatch.setattr(torch, "get_num_threads", lambda count=count: count)
         rows[count] = torch.zeros(lengths.numel(), field.appearance_grid.out_dims)
         features_fn.composite(x, ray, weight, rows[count])
-    with torch.no_grad():
-        expected = torch.zeros_like(rows[1]).index_add_(0, ray, weight[:, None] * field.appearance_grid._forward_rows(
-            field.normalise(x)))
-    assert points > 3 * 4096  # enough for the call to use every thread asked for
+    expected = _composited_through_pytorch(field, x, ray, weight, rays=lengths.numel())
+    # colour_network.h's composite_samples gives a thread at least 4 096 samples: enough here for 3.
+    assert points > 3 * 4096
     assert torch.equal(rows[threads], rows[1])
     assert float((rows[threads] - expected).abs().max()) <= 1e-5 * float(expected.abs().max())
 
