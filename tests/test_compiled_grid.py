@@ -60,6 +60,32 @@ def test_features_and_gradients_match_pytorch(threads, monkeypatch):
         assert parameter.grad.shape == parameter.shape and _close(parameter.grad, want)
 
 
+# Vertices along x that leave each of the kernel's paths a remainder: runs of 32, single
+# vectors of 8, and single vertices (5: none but those; 70: 2 runs, no vector, 6 single).
+@pytest.mark.parametrize("channels, vertices", [(16, (5, 4, 3)), (8, (70, 9, 11)), (12, (45, 13, 17)),
+                                                (24, (33, 2, 40))])
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_the_dense_sum_equals_the_three_matrix_products(channels, vertices, threads, monkeypatch):
+    monkeypatch.setattr(torch, "get_num_threads", lambda: threads)
+    torch.manual_seed(channels)
+    grid = VectorMatrixGrid(channels, vertices, init_scale=1.0)
+    with torch.no_grad():
+        compiled = compiled_grid.dense_sum(grid)
+        reference = grid._dense_sum_float32()
+    nx, ny, nz = vertices
+    assert compiled is not None and compiled.shape == reference.shape == (nz, ny, nx)
+    # The same 3·C products per vertex in another order: float32 rounding only.
+    assert _close(compiled, reference)
+    assert torch.equal(grid.dense_sum(), compiled)  # what the grid gives outside autograd
+
+
+def test_a_dense_sum_wanting_gradients_is_left_to_pytorch():
+    grid = VectorMatrixGrid(8, (9, 7, 5))
+    assert compiled_grid.dense_sum(grid) is None  # its parameters want gradients, and autograd is on
+    with torch.no_grad():
+        assert compiled_grid.dense_sum(grid) is not None
+
+
 def test_a_grid_of_other_channel_counts_reads_through_pytorch():
     grid = VectorMatrixGrid(3, 6)
     assert compiled_grid.read_grids([grid], _points(10, seed=3)) is None

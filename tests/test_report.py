@@ -30,9 +30,13 @@ def test_depth_error_on_pixels_foreground_in_both(tmp_path):
     error, pixels = depth_error(tmp_path / "truth.exr", tmp_path / "render.exr")
     assert pixels == 2  # (0,0) and (0,1); (1,0) is background in the render, (1,1) in the truth
     assert error == pytest.approx((abs(2.1 - 2.0) + abs(2.5 - 3.0)) / 2, abs=1e-6)
+    # The render's own arrays (eval's view just rendered) score exactly as the file they were written to.
+    (tmp_path / "render.exr").unlink()
+    assert depth_error(tmp_path / "truth.exr", tmp_path / "render.exr", (render_z, render_a)) == (error, pixels)
 
 
 def test_eval_scores_another_tools_renders(trained_run, tiny_demo_dataset, tmp_path):
+    (trained_run / "renders" / "test" / "renders.json").unlink(missing_ok=True)  # rendered (and scored) afresh
     run_python("-m", "nerf_backend", "eval", str(trained_run), "--no-progress")
     run_metrics = json.loads((trained_run / "metrics.json").read_text())
     other = tmp_path / "other_tool"
@@ -45,6 +49,13 @@ def test_eval_scores_another_tools_renders(trained_run, tiny_demo_dataset, tmp_p
     assert metrics["ssim"] == pytest.approx(run_metrics["ssim"], abs=1e-9)
     assert run_metrics["depth_mae"] is not None and 0 < run_metrics["depth_mae"] < 1.0
     assert metrics["depth_mae"] is None and "no depth" in metrics["depth_unavailable"]
+    # The run's eval scored each view as it was rendered, not read back: the files it wrote, read
+    # back, score the same to the last bit, depth included.
+    from_files = tmp_path / "from_files"
+    run_python("-m", "nerf_backend", "eval", "--dataset", str(tiny_demo_dataset), "--renders",
+               str(trained_run / "renders" / "test"), "--out", str(from_files))
+    read_back = json.loads((from_files / "metrics.json").read_text())
+    assert read_back["per_view"] == run_metrics["per_view"]
     assert "mean PSNR" in result.stdout
     # A view missing from the folder is named.
     (other / "r_1.png").unlink()

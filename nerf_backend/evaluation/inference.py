@@ -21,7 +21,7 @@ from ..data.run_folder import RunFolder
 from ..model_components.ray_bounds import RayBounds, choose_ray_bounds
 from ..models.base import Model
 from ..models.registry import build_model
-from .render_views import render_poses
+from .render_views import RenderedImage, render_poses
 
 RENDERS_RECORD = "renders.json"
 
@@ -45,13 +45,14 @@ def view_stem(image_path: Path) -> str:
 
 def render_split(run: RunFolder, split: str, device: torch.device, chunk: int | None = None,
                  progress: bool = True, scale: float = 1.0, dataset_split: DatasetSplit | None = None,
-                 on_view: Callable[[int], None] | None = None, writer: Executor | None = None) -> Path:
+                 on_view: Callable[[int, RenderedImage], None] | None = None,
+                 writer: Executor | None = None) -> Path:
     """Render every view of ``split`` with the run's latest checkpoint; returns the folder
     (``RUN/renders/SPLIT``, or ``RUN/renders/SPLIT_xSCALE`` at ``scale`` times the dataset's
     resolution, so the renders that ``eval`` scores keep their size). ``dataset_split``: the
-    split, where the caller has read it already; ``on_view(index)``: called once each view's
-    files are written; ``writer``: an executor that writes each view while the next renders
-    (``render_poses``).
+    split, where the caller has read it already; ``on_view(index, image)``: called once each
+    view's files are written, with what they hold; ``writer``: an executor that writes each view
+    while the next renders (``render_poses``).
 
     The folder's ``renders.json`` records the checkpoint iteration, so stale renders (from
     before the run trained further) are recognised, and the seconds each view took."""
@@ -63,10 +64,10 @@ def render_split(run: RunFolder, split: str, device: torch.device, chunk: int | 
     stems = [view_stem(p) for p in dataset_split.image_paths]
     bar = Progress(len(stems), f"render {split}", unit="view", enabled=progress)
 
-    def view_done(index: int) -> None:
+    def view_done(index: int, image: RenderedImage) -> None:
         bar.update(1)
         if on_view is not None:
-            on_view(index)
+            on_view(index, image)
 
     start = time.perf_counter()
     with StealMeter() as steal:

@@ -78,10 +78,11 @@ def save_rendered(image: RenderedImage, out_dir: Path, stem: str) -> Path:
 
 def render_poses(
     model: Model, intrinsics: Intrinsics, poses: Tensor, stems: list[str], ray_bounds: RayBounds,
-    out_dir: Path, chunk: int | None = None, on_view: Callable[[int], None] | None = None,
+    out_dir: Path, chunk: int | None = None, on_view: Callable[[int, RenderedImage], None] | None = None,
     writer: Executor | None = None,
 ) -> list[Path]:
-    """Render and save every pose; ``on_view(i)`` is called once view ``i``'s files are written.
+    """Render and save every pose; ``on_view(i, image)`` is called once view ``i``'s files are
+    written, with the image they hold.
     ``writer``: an executor that writes each view (then calls ``on_view``) while the next one
     renders; every view is written when this returns."""
     paths, writes = [], []
@@ -94,9 +95,9 @@ def render_poses(
     return paths + [write.result() for write in writes]
 
 
-def _save_and_tell(image: RenderedImage, out_dir: Path, stem: str, on_view: Callable[[int], None] | None,
-                   index: int) -> Path:
+def _save_and_tell(image: RenderedImage, out_dir: Path, stem: str,
+                   on_view: Callable[[int, RenderedImage], None] | None, index: int) -> Path:
     path = save_rendered(image, out_dir, stem)
     if on_view is not None:
-        on_view(index)
+        on_view(index, image)
     return path

@@ -59,6 +59,7 @@ def compiled_grid_library() -> ctypes.CDLL | None:
         return None
     library.vm_forward.restype = ctypes.c_int
     library.vm_backward.restype = ctypes.c_int
+    library.vm_dense_sum.restype = None
     library.sparse_adam.restype = ctypes.c_int64
     library.sparse_adam.argtypes = ([ctypes.c_void_p] * 6 + [ctypes.c_int64] * 3 + [ctypes.c_float] * 4
                                     + [ctypes.c_int64])
@@ -190,6 +191,39 @@ def density_components(grid) -> tuple[ctypes.Array, list[Tensor]] | None:
         return None
     tables = [rows_in_place(p) for p in grid_parameters([grid])]
     return kernel_components([grid], tables, None, None, None, None), tables
+
+
+def dense_sum(grid) -> Tensor | None:
+    """The grid's features summed at every vertex, ``[Nz, Ny, Nx]`` (``VectorMatrixGrid.dense_sum``),
+    in one compiled pass that writes each vertex once (``vm_dense_sum``); None where it does not
+    apply (not float32 on the CPU, a gradient wanted, no compiler). Lego's thirty-minute grid
+    (310 × 533 × 342 vertices, 2 AVX2 cores): 0.47 s through PyTorch's three matrix products.
+
+    Example (where a C compiler is found):
+        >>> from nerf_backend.field_components.grid_encodings import VectorMatrixGrid
+        >>> grid = VectorMatrixGrid(channels=4, vertices=(9, 7, 5))
+        >>> summed = dense_sum(grid)
+        >>> summed is None or bool(torch.allclose(summed, grid._dense_sum_float32(), atol=1e-5))
+        True
+    """
+    parameters = list(grid.parameters())
+    if (any(p.dtype != torch.float32 or p.device.type != "cpu" for p in parameters)
+            or (torch.is_grad_enabled() and any(p.requires_grad for p in parameters))
+            or compiled_grid_library() is None):
+        return None
+    (nx, ny, nz), channels = grid.vertices, grid.channels
+    (xy, xz, yz), (z_line, y_line, x_line) = [p.detach()[0] for p in grid.planes], [
+        line.detach()[0, :, :, 0] for line in grid.lines]
+    # x fastest for the x line and the two planes that hold x: a vertex row is then contiguous vectors.
+    x_columns, xy_columns, xz_columns = (x_line.contiguous(), xy.permute(2, 0, 1).contiguous(),
+                                         xz.permute(2, 0, 1).contiguous())
+    yz_rows, y_rows, z_rows = (yz.permute(1, 2, 0).contiguous(), y_line.T.contiguous(), z_line.T.contiguous())
+    out = torch.empty((nz, ny, nx))
+    compiled_grid_library().vm_dense_sum(
+        *(ctypes.c_void_p(t.data_ptr()) for t in (x_columns, xy_columns, xz_columns, yz_rows, y_rows, z_rows)),
+        *(ctypes.c_int64(n) for n in (nx, ny, nz, channels)), ctypes.c_void_p(out.data_ptr()),
+        ctypes.c_int64(torch.get_num_threads()))
+    return out
 
 
 def _gradient_sink(grid, parameters):

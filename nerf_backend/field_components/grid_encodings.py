@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..core.tensor_keys import values_key
-from .compiled_grid import channel_rows, read_grids
+from .compiled_grid import channel_rows, dense_sum, read_grids
 
 # (plane axes, line axis) of each of the three components.
 _MODES = (((0, 1), 2), ((0, 2), 1), ((1, 2), 0))
@@ -146,6 +146,9 @@ class VectorMatrixGrid(nn.Module):
         grid needs 64 MB, not gigabytes, and no volume-sized copy is made. Always float32:
         under autocast the first product would come out in half precision and the in-place
         sums could not take it."""
+        compiled = dense_sum(self)  # one pass writing each vertex once, where it applies
+        if compiled is not None:
+            return compiled
         with torch.autocast(self.planes[0].device.type, enabled=False):
             return self._dense_sum_float32()
 

@@ -25,9 +25,16 @@ def mse_to_psnr(mse: float) -> float:
 
 
 def psnr(image: np.ndarray | Tensor, reference: np.ndarray | Tensor) -> float:
-    a = torch.as_tensor(np.asarray(image, dtype=np.float64))
-    b = torch.as_tensor(np.asarray(reference, dtype=np.float64))
-    return mse_to_psnr(float(((a - b) ** 2).mean()))
+    """PSNR for data range 1, the squared error summed in float64 (as one dot product: through
+    PyTorch's elementwise float64 ops an 800×800 view took 15 ms, here 4)."""
+    difference = (_float64(image) - _float64(reference)).ravel()
+    return mse_to_psnr(float(difference @ difference) / difference.size)
+
+
+def _float64(image: np.ndarray | Tensor) -> np.ndarray:
+    if isinstance(image, Tensor):
+        image = image.detach().cpu().numpy()
+    return np.asarray(image, dtype=np.float64)
 
 
 # SSIM's window: 11×11 pixels, Gaussian weights of σ = 1.5 (scikit-image's filter radius, 3.5 σ).
