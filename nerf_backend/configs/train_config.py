@@ -102,6 +102,10 @@ class TrainConfig:
     collapse_check_after: int = 250
     collapse_margin_db: float = 1.0
     checkpoint_every: int = 1000
+    # Validating and writing a checkpoint pause the training (on top of --max-seconds, which
+    # counts steps): each kind is spaced so that it takes at most this share of the training
+    # time, besides its step cadence (training/pauses.py); 0: on the step cadence alone.
+    pause_share: float = 0.02
     log_every: int = 10
 
     def __getattr__(self, name: str) -> Any:

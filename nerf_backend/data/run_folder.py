@@ -14,6 +14,7 @@ import json
 import os
 import pickle
 import shutil
+import threading
 import time
 from pathlib import Path
 from typing import Iterator
@@ -31,6 +32,15 @@ def _first_line(error: Exception) -> str:
     return (str(error).strip().splitlines() or [type(error).__name__])[0]
 
 
+def serialised(state: dict) -> io.BytesIO:
+    """A checkpoint's state as the bytes ``torch.save`` writes, in memory: a snapshot the
+    training may change behind, and a write failure (a full disk) is then the OS's error, not
+    one of torch's."""
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    return buffer
+
+
 LOCK_NAME = ".lock"
 IN_USE = "another training is already using this run folder"
 
@@ -39,6 +49,7 @@ class RunFolder:
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
         self._lock_handle = None
+        self._log_lock = threading.Lock()
 
     @property
     def config_path(self) -> Path:
@@ -68,23 +79,25 @@ class RunFolder:
 
     def log(self, event: TrainingEvent) -> None:
         """Append one event line, stamped with the time; flushed at once so a reader (the
-        add-on) sees it live."""
-        line = to_line(dataclasses.replace(event, time=time.time()))
-        try:
-            with open(self.events_path, "a", encoding="utf-8") as handle:
-                handle.write(line + "\n")
-                handle.flush()
-        except OSError as exc:
-            raise RunError(f"{self.events_path}: cannot write ({exc.strerror or exc})") from exc
+        add-on) sees it live. Safe from several threads (a checkpoint's event is logged by
+        the thread that wrote it)."""
+        with self._log_lock:
+            line = to_line(dataclasses.replace(event, time=time.time()))
+            try:
+                with open(self.events_path, "a", encoding="utf-8") as handle:
+                    handle.write(line + "\n")
+                    handle.flush()
+            except OSError as exc:
+                raise RunError(f"{self.events_path}: cannot write ({exc.strerror or exc})") from exc
 
     def read_events(self) -> list[Event]:
         return read_events(self.events_path)
 
     def save_checkpoint(self, state: dict) -> None:
-        # Serialised in memory first so that a write failure (a full disk) is the OS's
-        # error, not one of torch's; either way the previous checkpoint stays.
-        buffer = io.BytesIO()
-        torch.save(state, buffer)
+        self.write_checkpoint(serialised(state))
+
+    def write_checkpoint(self, buffer: io.BytesIO) -> None:
+        """``serialised``'s bytes as the checkpoint, replacing it whole or not at all."""
         atomic_write(self.checkpoint_path, lambda tmp: tmp.write_bytes(buffer.getbuffer()))
 
     def load_checkpoint(self, device: torch.device, mapped: bool = False) -> dict:

@@ -6,10 +6,12 @@ guard's recovery (``collapse_guard.recovery_config``), recorded in ``config.json
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import torch
 import torch.nn.functional as F
@@ -32,9 +34,11 @@ from ..models.registry import build_model
 from ..planning.facts import RunFacts, RunRequest, gather_facts
 from ..planning.plan import RunPlan, plan_run
 from ..planning.rules import RULES
+from .checkpoint_writer import CheckpointWriter
 from .collapse_guard import CollapseGuard, Verdict, recovery_config
 from .error_map import ErrorMap
 from .optimizer import make_optimizer
+from .pauses import PauseCadence
 from .progress_bar import TrainingProgress
 from .ray_batch import draw_batch
 from .summary import TrainSummary
@@ -111,6 +115,9 @@ class _Training:
         self.error_map = (ErrorMap(len(views), share=self.config.error_sampling)
                           if self.config.error_sampling > 0 else None)
         self.score: ViewScore | None = None
+        self.validations = 0  # this session's: each shows the next validation view
+        self.judged_start = -1  # the start of the run (restart["attempt"]) the guard last judged
+        self.checkpoints = CheckpointWriter(run)
         self.collapse: Verdict | None = None
         self.guard = CollapseGuard(facts.val_split, plan.ray_bounds, self.config.collapse_margin_db)
         self.progress: TrainingProgress | None = None
@@ -146,6 +153,7 @@ class _Training:
         if self.val_split is not None and stop_reason != "collapsed":
             stop_reason = self._final_validation(stop_reason)
         self._checkpoint()
+        self.checkpoints.finish()  # its event before the run's last
         val_psnr = self.score.psnr if self.score is not None else None
         run.log(events.Done(iteration=self.iteration, elapsed_s=self.train_seconds, reason=stop_reason,
                             val_psnr=val_psnr))
@@ -158,7 +166,9 @@ class _Training:
     def _loop(self) -> str:
         """Steps until the iterations or the time budget are spent, a stop is asked for, or
         the model collapses for good; returns why it stopped."""
-        max_seconds = self.plan.max_seconds
+        max_seconds, config = self.plan.max_seconds, self.config
+        validating = PauseCadence(config.validate_every, config.pause_share)
+        checkpointing = PauseCadence(config.checkpoint_every, config.pause_share)
         self.model.train()
         with StopRequest() as stop:
             while not self.plan.stop_at_iterations or self.iteration < self.config.iterations:
@@ -167,13 +177,19 @@ class _Training:
                 if stop.requested:
                     return "cancelled"
                 self._step()
-                if self.val_split is not None and self.iteration % self.config.validate_every == 0:
-                    self._validate()
+                if self.val_split is not None and (validating.due(self.iteration, self.train_seconds) or (
+                        validating.on_cadence(self.iteration) and self._guard_waits())):
+                    self._paused(validating, self._validate)
                     if self._judged() and not self._survives_collapse_check():
                         return "collapsed"
-                if self.iteration % self.config.checkpoint_every == 0:
-                    self._checkpoint()
+                if checkpointing.due(self.iteration, self.train_seconds):
+                    self._paused(checkpointing, self._checkpoint)
         return "iterations"
+
+    def _paused(self, cadence: PauseCadence, work: Callable[[], None]) -> None:
+        started = time.perf_counter()
+        work()
+        cadence.took(time.perf_counter() - started, self.train_seconds)
 
     def _step(self) -> None:
         """One optimiser step on a batch of random rays."""
@@ -293,7 +309,15 @@ class _Training:
 
     def _validate(self) -> None:
         self.score = validate_view(self.model, self.val_split, self.plan.ray_bounds, self.run_folder, self.iteration,
-                               self.train_seconds, self.config.validate_every)
+                                   self.train_seconds, self.validations % len(self.val_split))
+        self.validations += 1
+
+    def _guard_waits(self) -> bool:
+        """Whether this start of the run is old enough to judge and not yet judged: its first
+        judgement is never put off (a model that collapsed from the start restarts at
+        ``collapse_check_after`` steps, on any machine); later ones come with the spaced
+        validations."""
+        return self._judged() and self.judged_start != self.restart["attempt"]
 
     def _judged(self) -> bool:
         """Whether this start of the run is old enough for the collapse guard to judge."""
@@ -301,6 +325,7 @@ class _Training:
 
     def _survives_collapse_check(self) -> bool:
         """After a validation: False when the model has collapsed and cannot start again."""
+        self.judged_start = self.restart["attempt"]
         self.collapse = self.guard.confirm(self.model, self.score.psnr, self.score.blank_psnr, self.iteration)
         return self.collapse is None or self._restart_after_collapse()
 
@@ -352,18 +377,19 @@ class _Training:
                   if value.is_floating_point() and not bool(torch.isfinite(value).all())]
         if broken:
             self._diverged(f"weights {', '.join(broken[:3])} are not finite")
-        self.run_folder.save_checkpoint({
+        self.checkpoints.save({
             "iteration": self.iteration, "train_seconds": self.train_seconds, "model": self.model.state_dict(),
             "optimizer": self.optimizer.state_dict(), "batch_rng": self.batch_generator.get_state(),
             "sample_rng": self.sample_generator.get_state(), "config": self.config.to_dict(),
             "restart": self.restart, "trained": self.trained,
             **({"grad_scaler": self.scaler.state_dict()} if self.scaler.is_enabled() else {}),
-        })
-        self.run_folder.log(events.Checkpoint(iteration=self.iteration, elapsed_s=self.train_seconds,
-                                              path=str(self.run_folder.checkpoint_path)))
+        }, events.Checkpoint(iteration=self.iteration, elapsed_s=self.train_seconds,
+                             path=str(self.run_folder.checkpoint_path)))
 
     def _diverged(self, what: str) -> None:
         run = self.run_folder
+        with contextlib.suppress(NerfError):  # a checkpoint still being written is then on disk
+            self.checkpoints.finish()
         kept = (f"the last good checkpoint is kept at {run.checkpoint_path}" if run.checkpoint_path.exists()
                 else "no checkpoint had been written yet")
         message = (f"training diverged at iteration {self.iteration} ({what}); {kept}; "

@@ -29,11 +29,10 @@ class ViewScore:
 
 def validate_view(
     model: Model, val_split: DatasetSplit, ray_bounds: RayBounds, run: RunFolder, iteration: int,
-    train_seconds: float, validate_every: int,
+    train_seconds: float, view: int,
 ) -> ViewScore:
-    """Render one validation view (cycling through them) and log its PSNR next to the blank
-    image's; the render becomes RUN/preview.png for anyone watching."""
-    view = (iteration // max(1, validate_every)) % len(val_split)
+    """Render validation view ``view`` and log its PSNR next to the blank image's; the render
+    becomes RUN/preview.png for anyone watching."""
     image = render_image(model, val_split.intrinsics, val_split.poses[view], ray_bounds)
     target = val_split.rgb_on_white(view).numpy()
     score = ViewScore(iteration, psnr(image.rgb, target), blank_psnr(target))
