@@ -345,10 +345,12 @@ int64_t sparse_adam(float *param, float *grad, float *exp_avg, float *exp_avg_sq
  * transposes of 11 and 7 MB on lego's thirty-minute grid), so that a row of x is 8 vertices a
  * vector and every load contiguous. Each output is written once, its sum kept in registers over
  * the channels: through PyTorch it was three matrix products of 16-long rows, each a pass
- * over the volume's 226 MB: 0.47 s on 2 AVX2 cores, here 0.16 s (and the volume's first-touch
- * page faults, 0.07 s). Row by row over every y for each z, the (x, y) plane's 11 MB were read
- * again for each z: 0.3-0.8 s. Tiles of z, y and x that keep a run's columns in L1 measured
- * slower (0.26 s): the loads, not the caches, bound it. Threads take shares of y. */
+ * over the volume's 226 MB: 0.38-0.47 s on 2 AVX2 cores (lego's thirty-minute grid), here
+ * 0.11-0.13 s, and 0.07-0.13 s more for the first touch of the volume's pages. Its 5.4 GFLOP
+ * take 42 ms at the machine's 128 GFLOP/s of fused products, 84 ms as the separate products and
+ * sums ISO C compiles to: 1.4 times that. Row by row over every y for each z, the (x, y) plane's
+ * 11 MB were read again for each z: 0.3-0.8 s. Tiles of z, y and x that keep a run's columns in
+ * L1 measured slower (0.26 s). Threads take shares of y. */
 typedef struct {
     const float *x_columns, *xy_columns, *xz_columns; /* [C][nx], [ny][C][nx], [nz][C][nx] */
     const float *yz, *y_line, *z_line;                /* [ny][nz][C], [ny][C], [nz][C] */
