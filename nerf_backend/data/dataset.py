@@ -296,8 +296,8 @@ def _read_images(paths: list[Path]) -> np.ndarray:
     """The images as one uint8 array ``[N, H, W, 4]``, filled image by image: no list of images
     beside a stacked copy, so loading peaks at the split's own size (100 views at 800×800:
     256 MB). Decoded on torch's threads (Pillow's decoder leaves the GIL): lego's 13 test views
-    at 800×800 took 0.35 s on one of 2 AVX2 cores, 0.19 s on both. The first bad image in the
-    split's order is the one reported."""
+    at 800×800 took 0.23-0.31 s on one of 2 AVX2 cores, 0.17-0.21 s on both. The first bad
+    image in the split's order is the one reported."""
     first = _read_rgba(paths[0])  # its size is every image's
     images = np.empty((len(paths), *first.shape), np.uint8)
     images[0] = first
