@@ -38,6 +38,11 @@ FOREGROUND_ALPHA = 0.5
 DEPTH_MASK = f"pixels whose ground-truth alpha and rendered opacity both exceed {FOREGROUND_ALPHA}"
 
 
+def unit_float(pixels: np.ndarray) -> np.ndarray:
+    """8-bit RGB as float32 in [0, 1]: a PNG read back, or the pixels it was written from."""
+    return pixels.astype(np.float32) / np.float32(255.0)
+
+
 def read_rgb(path: Path) -> np.ndarray:
     """An image on disk as float RGB in [0, 1]; RGBA is composited over white."""
     if not path.is_file():
@@ -45,7 +50,7 @@ def read_rgb(path: Path) -> np.ndarray:
     try:
         with Image.open(path) as image:
             if image.mode == "RGB":  # no alpha (this project's renders): nothing to composite, the same floats
-                return np.asarray(image).astype(np.float32) / np.float32(255.0)
+                return unit_float(np.asarray(image))
             rgba = torch.from_numpy(np.asarray(image.convert("RGBA")).copy())
     except OSError as exc:
         raise NerfError(f"{path}: cannot read image ({exc})") from None
@@ -80,7 +85,7 @@ def score_view(split: DatasetSplit, renders_dir: Path, tools: MetricTools, index
     as written, without reading them back (20-40 ms an 800×800 view)."""
     gt_path = split.image_paths[index]
     render_path = renders_dir / f"{gt_path.stem}.png"
-    rendered = read_rgb(render_path) if image is None else eight_bit(image.rgb).astype(np.float32) / np.float32(255.0)
+    rendered = read_rgb(render_path) if image is None else unit_float(eight_bit(image.rgb))
     reference = split.rgb_on_white(index).numpy()
     if rendered.shape != reference.shape:
         raise NerfError(f"{render_path}: size {rendered.shape[1]}×{rendered.shape[0]} differs from "
