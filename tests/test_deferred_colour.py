@@ -9,6 +9,7 @@ bounds of their shortcuts; a faint ray's gradients stay finite; the preset train
 
 from __future__ import annotations
 
+import copy
 import ctypes
 import json
 
@@ -20,6 +21,7 @@ from conftest import X86_LEVELS, cpu_runs_x86_level, deferred_grid_model, rays_t
 from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.data.dataset import load_split
 from nerf_backend.field_components.compiled_colour import CompiledRayFeatures
+from nerf_backend.field_components.compiled_grid import channel_rows
 from nerf_backend.fields.grid_field import GridField, GridFieldConfig
 from nerf_backend.kernels.build import load_kernel
 from nerf_backend.metrics.image_metrics import psnr
@@ -197,20 +199,79 @@ def test_the_compiled_inference_compositing_adds_each_samples_weighted_features(
         assert library is not None, why_not
         library.composite_samples.restype = ctypes.c_int
         features_fn = CompiledRayFeatures(field, library)
-    generator = torch.Generator().manual_seed(7)
-    ray = torch.sort(torch.randint(0, 50, (4000,), generator=generator)).values
-    x = (torch.rand(4000, 3, generator=generator) * 2 - 1) * torch.tensor([1.0, 1.0, 0.5])
-    weight = torch.rand(4000, generator=generator)
+    x, ray, weight = _packed_samples()
     out = torch.zeros(50, field.appearance_grid.out_dims)
     features_fn.composite(x, ray, weight, out)
+    expected = _composited_through_pytorch(field, x, ray, weight, rays=50)
+    if features_fn._halves is None:  # float32 tables: PyTorch's sums to rounding
+        assert float((out - expected).abs().max()) <= 1e-5 * float(expected.abs().max())
+        return
+    # Half-precision tables (x86-64-v3 and up): the sums of the grid rounded to half, to float32
+    # rounding; and within the half's rounding (2^-11 of each row value, twice: plane and line)
+    # of the float32 grid's.
+    expected_rounded = _composited_through_pytorch(_as_read(field, features_fn), x, ray, weight, rays=50)
+    assert float((out - expected_rounded).abs().max()) <= 1e-5 * float(expected_rounded.abs().max())
+    bound = 2.0 ** -10 * _composited_through_pytorch(field, x, ray, weight, rays=50, magnitudes=True)
+    assert bool(((out - expected).abs() <= bound + 1e-6).all())
+    assert float((out - expected).abs().max()) > 0  # the half tables were read
+
+
+def test_the_half_tables_follow_the_grid_and_step_aside_for_values_a_half_cannot_hold():
+    """The feature pass's half-precision copy of the appearance grid is made again when the grid
+    changes, and not at all where a value is past the half's range (the float32 tables are read,
+    to PyTorch's sums)."""
+    field = _field(deferred=True, wall=False, seed=6)
+    first = field.ray_features(torch.zeros(1, 3))
+    if first._halves is None:
+        pytest.skip("this build reads float32 tables (no F16C)")
+    again = field.ray_features(torch.zeros(1, 3))
+    assert again._halves is first._halves  # kept between a view's chunks
+    x, ray, weight = _packed_samples()
+    with torch.no_grad():
+        field.appearance_grid.planes[0].mul_(2.0)
+    doubled = field.ray_features(torch.zeros(1, 3))
+    assert doubled._halves is not first._halves
+    assert torch.equal(doubled._halves[0], channel_rows(field.appearance_grid.planes[0].detach()).half())
+    with torch.no_grad():
+        field.appearance_grid.lines[2][0, 0, 3, 0] = 1e5  # past 65504
+    wide = field.ray_features(torch.zeros(1, 3))
+    assert wide._halves is None
+    out = torch.zeros(50, field.appearance_grid.out_dims)
+    wide.composite(x, ray, weight, out)
     expected = _composited_through_pytorch(field, x, ray, weight, rays=50)
     assert float((out - expected).abs().max()) <= 1e-5 * float(expected.abs().max())
 
 
-def _composited_through_pytorch(field, x, ray, weight, rays: int):
-    """Each ray's row: the sum of its samples' weighted appearance features, read by PyTorch."""
+def _packed_samples() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """4 000 packed samples of 50 rays (ascending) in the field's box, and their weights."""
+    generator = torch.Generator().manual_seed(7)
+    ray = torch.sort(torch.randint(0, 50, (4000,), generator=generator)).values
+    x = (torch.rand(4000, 3, generator=generator) * 2 - 1) * torch.tensor([1.0, 1.0, 0.5])
+    return x, ray, torch.rand(4000, generator=generator)
+
+
+def _as_read(field, features_fn):
+    """``field`` as the compiled pass ``features_fn`` reads it: its appearance grid rounded to
+    half precision where the pass reads half tables."""
+    if features_fn._halves is None:
+        return field
+    rounded = copy.deepcopy(field)
     with torch.no_grad():
-        features = field.appearance_grid._forward_rows(field.normalise(x))
+        for parameter in rounded.appearance_grid.parameters():
+            parameter.copy_(parameter.half().float())
+    return rounded
+
+
+def _composited_through_pytorch(field, x, ray, weight, rays: int, magnitudes: bool = False):
+    """Each ray's row: the sum of its samples' weighted appearance features, read by PyTorch;
+    with ``magnitudes``, of the grid's absolute values (what bounds a rounding of the rows)."""
+    with torch.no_grad():
+        grid = field.appearance_grid
+        if magnitudes:
+            grid = copy.deepcopy(grid)
+            for parameter in grid.parameters():
+                parameter.abs_()
+        features = grid._forward_rows(field.normalise(x))
         return torch.zeros(rays, features.shape[1]).index_add_(0, ray, weight[:, None] * features)
 
 
@@ -232,7 +293,7 @@ def test_the_compiled_compositing_on_threads_keeps_each_rays_sum_whole(threads, 
         monkeypatch.setattr(torch, "get_num_threads", lambda count=count: count)
         rows[count] = torch.zeros(lengths.numel(), field.appearance_grid.out_dims)
         features_fn.composite(x, ray, weight, rows[count])
-    expected = _composited_through_pytorch(field, x, ray, weight, rays=lengths.numel())
+    expected = _composited_through_pytorch(_as_read(field, features_fn), x, ray, weight, rays=lengths.numel())
     # colour_network.h's composite_samples gives a thread at least 4 096 samples: enough here for 3.
     assert points > 3 * 4096
     assert torch.equal(rows[threads], rows[1])

@@ -34,6 +34,7 @@ import torch
 from torch import Tensor, nn
 
 from ..core.field_functions import RayColourFn
+from ..core.tensor_keys import values_key
 from .compiled_grid import CHANNEL_BLOCK, KernelComponent, compiled_grid_library, kernel_components, rows_in_place
 
 # colour_network.h's HIDDEN: a network of another width colours through PyTorch.
@@ -44,7 +45,10 @@ class _ColourNetwork(ctypes.Structure):
     _fields_ = [("grid", KernelComponent * 3), ("per_ray", ctypes.c_void_p), ("w1", ctypes.c_void_p),
                 ("w2", ctypes.c_void_p), ("b2", ctypes.c_void_p), ("w3", ctypes.c_void_p), ("b3", ctypes.c_void_p),
                 ("box_min", ctypes.c_float * 3), ("scale", ctypes.c_float * 3), ("features", ctypes.c_int32),
-                ("hidden", ctypes.c_int32)]
+                ("hidden", ctypes.c_int32), ("half_plane", ctypes.c_void_p * 3), ("half_line", ctypes.c_void_p * 3)]
+
+# The largest finite IEEE half: a table with a larger value (or NaN) is read in float32.
+HALF_MAX = 65504.0
 
 
 def _linear_layers(network: nn.Sequential) -> list[nn.Linear] | None:
@@ -116,6 +120,10 @@ class CompiledRayFeatures:
     def __init__(self, field, library: ctypes.CDLL) -> None:
         self._field = field
         self._network, self._tables = _grid_network(field)  # the network's weights unused
+        self._halves = _half_tables(field, self._tables) if library.half_tables() else None
+        if self._halves is not None:  # plane, line of each component, as the tables are
+            self._network.half_plane = (ctypes.c_void_p * 3)(*[t.data_ptr() for t in self._halves[0::2]])
+            self._network.half_line = (ctypes.c_void_p * 3)(*[t.data_ptr() for t in self._halves[1::2]])
         self._library = library
         self.channels = field.appearance_grid.out_dims
 
@@ -135,6 +143,20 @@ class CompiledRayFeatures:
             raise RuntimeError(f"colour_network.h refused the call (status {status})")
 
 
+def _half_tables(field, tables: list[Tensor]) -> list[Tensor] | None:
+    """The appearance grid's row tables in half precision, for ``composite_samples`` to read
+    (half the bytes: lego's thirty-minute grid is 44 MB in float32, more than the L3 of the
+    project's 2-core EPYCs); kept on ``field`` until its values change, as a view's ten chunks
+    each build a ``CompiledRayFeatures``. None where a value is not a finite half."""
+    key = values_key(tables)
+    kept = field.__dict__.get("_half_tables")
+    if kept is None or kept[0] != key:
+        fits = all(bool(table.abs().max() <= HALF_MAX) for table in tables if table.numel())  # NaN does not
+        kept = (key, [table.to(torch.float16) for table in tables] if fits else None)
+        field.__dict__["_half_tables"] = kept
+    return kept[1]
+
+
 def compiled_ray_features(field) -> CompiledRayFeatures | None:
     """The compiled compositing of ``field``'s appearance features (a ``GridAppearance``), or
     None where it does not apply (not on the CPU in float32, channels not whole vectors, no C
@@ -147,6 +169,7 @@ def compiled_ray_features(field) -> CompiledRayFeatures | None:
     if library is None:
         return None
     library.composite_samples.restype = ctypes.c_int
+    library.half_tables.restype = ctypes.c_int
     return CompiledRayFeatures(field, library)
 
 
