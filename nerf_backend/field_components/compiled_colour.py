@@ -47,9 +47,6 @@ class _ColourNetwork(ctypes.Structure):
                 ("box_min", ctypes.c_float * 3), ("scale", ctypes.c_float * 3), ("features", ctypes.c_int32),
                 ("hidden", ctypes.c_int32), ("half_plane", ctypes.c_void_p * 3), ("half_line", ctypes.c_void_p * 3)]
 
-# The largest finite IEEE half: a table with a larger value (or NaN) is read in float32.
-HALF_MAX = 65504.0
-
 
 def _linear_layers(network: nn.Sequential) -> list[nn.Linear] | None:
     """The network's three layers where it is ``Linear, ReLU, Linear, ReLU, Linear`` of the
@@ -151,8 +148,8 @@ def _half_tables(field, tables: list[Tensor]) -> list[Tensor] | None:
     key = values_key(tables)
     kept = field.__dict__.get("_half_tables")
     if kept is None or kept[0] != key:
-        fits = all(bool(table.abs().max() <= HALF_MAX) for table in tables if table.numel())  # NaN does not
-        kept = (key, [table.to(torch.float16) for table in tables] if fits else None)
+        halves = [table.to(torch.float16) for table in tables]  # past the range: inf; NaN stays NaN
+        kept = (key, halves if all(bool(torch.isfinite(half).all()) for half in halves) else None)
         field.__dict__["_half_tables"] = kept
     return kept[1]
 
