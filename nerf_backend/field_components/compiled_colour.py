@@ -34,7 +34,7 @@ import torch
 from torch import Tensor, nn
 
 from ..core.field_functions import RayColourFn
-from ..core.tensor_keys import values_key
+from ..core.tensor_keys import kept_derived
 from .compiled_grid import CHANNEL_BLOCK, KernelComponent, compiled_grid_library, kernel_components, rows_in_place
 
 # colour_network.h's HIDDEN: a network of another width colours through PyTorch.
@@ -145,13 +145,10 @@ def _half_tables(field, tables: list[Tensor]) -> list[Tensor] | None:
     (half the bytes: lego's thirty-minute grid is 44 MB in float32, more than the L3 of the
     project's 2-core EPYCs); kept on ``field`` until its values change, as a view's ten chunks
     each build a ``CompiledRayFeatures``. None where a value is not a finite half."""
-    key = values_key(tables)
-    kept = field.__dict__.get("_half_tables")
-    if kept is None or kept[0] != key:
+    def build() -> list[Tensor] | None:
         halves = [table.to(torch.float16) for table in tables]  # past the range: inf; NaN stays NaN
-        kept = (key, halves if all(bool(torch.isfinite(half).all()) for half in halves) else None)
-        field.__dict__["_half_tables"] = kept
-    return kept[1]
+        return halves if all(bool(torch.isfinite(half).all()) for half in halves) else None
+    return kept_derived(field, "half tables", tables, build)
 
 
 def compiled_ray_features(field) -> CompiledRayFeatures | None:

@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..core.tensor_keys import values_key
+from ..core.tensor_keys import kept_derived
 from .compiled_grid import channel_rows, dense_sum, read_grids
 
 # (plane axes, line axis) of each of the three components.
@@ -104,10 +104,7 @@ class VectorMatrixGrid(nn.Module):
             return [channel_rows(p) for p in self.planes], [channel_rows(line) for line in self.lines]
         if torch.is_grad_enabled():
             return tables()
-        key = values_key([*self.planes, *self.lines])
-        if getattr(self, "_kept_tables", (None,))[0] != key:
-            self._kept_tables = (key, tables())
-        return self._kept_tables[1]
+        return kept_derived(self, "tables", [*self.planes, *self.lines], tables)
 
     def _forward_grid_sample(self, x: Tensor) -> Tensor:
         points = x.shape[0]

@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..core.scene_bounds import SceneBounds
-from ..core.tensor_keys import values_key
+from ..core.tensor_keys import kept_derived
 from ..core.field_functions import LitPassFn
 from ..field_components.compiled_grid import density_components, read_grids
 from ..field_components.compiled_lit_pass import lit_pass, lit_pass_applies
@@ -183,11 +183,7 @@ class GridField(VertexOccupancy, GridAppearance, MarchableField):
         memory between steps for nothing."""
         if self.training:
             return self.density_grid.dense_sum()
-        key = values_key(self.density_grid.parameters())
-        cached = getattr(self, "_dense_cache", None)
-        if cached is None or cached[0] != key:
-            cached = self._dense_cache = (key, self.density_grid.dense_sum())
-        return cached[1]
+        return kept_derived(self, "dense sum", self.density_grid.parameters(), self.density_grid.dense_sum)
 
     def density_from_volume(self, volume: Tensor, x: Tensor, directions: Tensor | None = None) -> Tensor:
         """``density(x)`` read from ``density_volume()``'s result (the direction plays no part)."""

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from ..core.scene_bounds import SceneBounds
-from ..core.tensor_keys import values_key
+from ..core.tensor_keys import kept_derived
 from ..kernels.build import load_kernel
 
 # How far (in cells, on each axis) the skip grid (``OccupancyGrid.skip_cells``) spreads each
@@ -208,11 +208,7 @@ class OccupancyGrid(nn.Module):
     def _derived(self, name: str, build: Callable[[], Tensor]) -> Tensor:
         """``build()``, kept under ``name`` until ``occupied`` changes (in place, resized or
         moved): the grids the marches read are derived from it, and rebuilt only then."""
-        key = values_key([self.occupied])
-        kept = self.__dict__.setdefault("_derived_grids", {})
-        if name not in kept or kept[name][0] != key:
-            kept[name] = (key, build())
-        return kept[name][1]
+        return kept_derived(self, name, [self.occupied], build)
 
     def skip_span_steps(self, step: float) -> int:
         """March steps of length ``step`` in one span that ``skip_cells`` can vouch for: the
