@@ -30,6 +30,7 @@ from .core.frame_fit import (
     Similarity,
     fit_similarity,
     fit_target_radius,
+    thickened,
     view_half_angle,
 )
 from .core.intrinsics import CameraSettings, Intrinsics, ray_length_factors
@@ -225,7 +226,7 @@ def _survey(options: GeneratorOptions, scene: Any, journal: Any) -> _Survey:
 
     materials = [classify_material(describe_material(name, users)).record()
                  for name, users in sorted(geometry.materials.items())]
-    low, high = frame.bounds(geometry.low, geometry.high)  # type: ignore[arg-type]
+    low, high = thickened(*frame.bounds(geometry.low, geometry.high))  # type: ignore[arg-type]
     builtin = {"builtin": options.builtin_name} if options.builtin_name is not None else {}
     profile = scene_profile(
         source["source"], low, high, **builtin,

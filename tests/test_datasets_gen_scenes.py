@@ -357,6 +357,26 @@ def test_shared_20_specular_profile_flags_its_spheres(shared_scenes: Path) -> No
     assert any("specular" in reason for m in spheres for reason in m["reasons"])
 
 
+def test_a_flat_scene_gets_bounds_with_a_thickness_the_backend_takes(tmp_path: Path) -> None:
+    """A single plane (no extent along z): the profile's bounds are widened across it to
+    MIN_THICKNESS of their longest side, which the backend reads as a box; before, min equalled
+    max on z and training refused the dataset."""
+    from datasets_gen.core.frame_fit import MIN_THICKNESS
+    from nerf_backend.data.dataset import load_scene_bounds
+    result = subprocess.run([sys.executable, str(SCRIPTS / "make_scenes.py"), str(tmp_path), "flat"],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    out = tmp_path / "dataset"
+    assert run_module(str(tmp_path / "flat.blend"), "--out", str(out), *TINY).returncode == 0
+    bounds = json.loads((out / "scene_profile.json").read_text())["bounds"]
+    sides = [hi - lo for lo, hi in zip(bounds["min"], bounds["max"])]
+    assert sides[0] == pytest.approx(sides[1], rel=1e-6)  # the square card, fitted to the protocol's frame
+    assert sides[2] == pytest.approx(MIN_THICKNESS * sides[0], rel=1e-6)
+    assert bounds["min"][2] == pytest.approx(-bounds["max"][2], abs=1e-9)  # about the card's plane
+    box = load_scene_bounds(out)
+    assert box is not None and all(lo < hi for lo, hi in zip(box.box_min, box.box_max))
+
+
 def test_material_facts_are_read_from_the_node_trees(tmp_path: Path) -> None:
     """What each sphere of materials.blend is made of, in its scene profile: constants read from
     the Principled BSDF, a texture's and a node group's inputs named as the reason they vary."""

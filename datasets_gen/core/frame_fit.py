@@ -25,6 +25,9 @@ from .trajectories import RIG_RADIUS, Matrix4, Vector3
 #: Room kept around the fitted object in the narrowest view: its sphere fills 90 % of the cone.
 FIT_MARGIN = 0.1
 
+#: The thinnest a side of the profile's bounds may be, as a share of the longest side.
+MIN_THICKNESS = 0.04
+
 FIT_RULE = (
     "fit: the renderable geometry's bounding sphere (centre = centre of its axis-aligned bounds, "
     "radius = distance from that centre to the farthest vertex) is moved to the origin and scaled "
@@ -89,6 +92,29 @@ class Similarity:
 
 
 IDENTITY = Similarity(1.0, (0.0, 0.0, 0.0))
+
+
+def thickened(low: Sequence[float], high: Sequence[float],
+              share: float = MIN_THICKNESS) -> tuple[list[float], list[float]]:
+    """Bounds ``[low, high]`` with every side thinner than ``share`` of the longest widened to
+    that, about its middle. A flat scene (a plane, a card, a decal: glTF-Blender-IO's
+    39_iridescence.blend is two quads) has no extent across it, and bounds with min equal to max
+    there are no box at all; a NeRF draws such a surface as a thin slab, and its grid needs cells
+    across it (4 % of the side is about 6 of the 159 vertices the grid grows to).
+
+    Example:
+        >>> thickened([-1.0, -0.5, 0.0], [1.0, 0.5, 0.0])
+        ([-1.0, -0.5, -0.04], [1.0, 0.5, 0.04])
+        >>> thickened([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])  # thick enough: unchanged
+        ([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
+    """
+    floor = share * max(hi - lo for lo, hi in zip(low, high))
+    widened_low, widened_high = [float(value) for value in low], [float(value) for value in high]
+    for axis, (lo, hi) in enumerate(zip(low, high)):
+        if hi - lo < floor:
+            middle = (lo + hi) / 2.0
+            widened_low[axis], widened_high[axis] = middle - floor / 2.0, middle + floor / 2.0
+    return widened_low, widened_high
 
 
 def _with_position(matrix: Sequence[Sequence[float]], position: Sequence[float]) -> Matrix4:

@@ -272,6 +272,9 @@ def appearance_region(profile: MaterialProfile, transmitting: Sequence[str] = ()
         ('transmissive', 'transmission 1')
         >>> classify_material({"name": "Clay", "uses_nodes": False}).region
         'diffuse'
+        >>> classify_material({"name": "Film", "nodes": [{"type": "BSDF_PRINCIPLED", "inputs": {
+        ...     "Thin Film Thickness": {"linked": True, "from": {"type": "MIX", "name": "Mix"}}}}]}).region_reason
+        "thin film varies (driven by the mix node 'Mix')"
     """
     inputs = profile.appearance.get("inputs", {})
     transmission = _present(inputs.get("transmission"))
@@ -279,9 +282,10 @@ def appearance_region(profile: MaterialProfile, transmitting: Sequence[str] = ()
         return "transmissive", f"transmission {transmission}"
     if transmitting:
         return "transmissive", transmitting[0]
-    film = _present(inputs.get("thin_film_thickness"))
-    if film:
-        return "thin_film", f"thin film {film} nm"
+    film_fact = inputs.get("thin_film_thickness")
+    film = _present(film_fact)
+    if film:  # a thickness in nm, or why it varies (a texture, a node)
+        return "thin_film", f"thin film {film}" + ("" if "varies" in film_fact else " nm")
     metallic = inputs.get("metallic") or {}
     if "varies" in metallic or (isinstance(metallic.get("value"), (int, float)) and metallic["value"] >= METAL_FROM):
         return "metal", f"metallic {_present(metallic)}"

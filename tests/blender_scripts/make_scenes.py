@@ -254,6 +254,22 @@ def sphere(out_dir: str) -> None:
     save(out_dir, "sphere.blend")
 
 
+def flat(out_dir: str) -> None:
+    """A single square plane at z = 0: a scene with no extent along one axis."""
+    scene = reset()
+    world(scene)
+    sun(scene)
+    bm = bmesh.new()
+    bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=1.0)
+    mesh = bpy.data.meshes.new("Card")
+    bm.to_mesh(mesh)
+    bm.free()
+    obj = bpy.data.objects.new("Card", mesh)
+    scene.collection.objects.link(obj)
+    obj.data.materials.append(material("card", (0.8, 0.3, 0.2)))
+    save(out_dir, "flat.blend")
+
+
 def occupancy(out_dir: str) -> None:
     scene = reset()
     world(scene)
@@ -369,6 +385,7 @@ BUILDERS = {
     "eevee_filmic": eevee_filmic,
     "markers": markers,
     "sphere": sphere,
+    "flat": flat,
     "occupancy": occupancy,
     "materials": materials,
 }
