@@ -195,7 +195,7 @@ def test_two_glasses_each_keep_their_ior_and_tint(tmp_path):
     assert surfaces.tint_logits.requires_grad
 
 
-def test_only_smooth_fully_transmissive_nearly_colourless_glass_is_bent():
+def test_only_smooth_fully_transmissive_nearly_colourless_unmixed_glass_is_bent():
     def material(transmission=1.0, roughness=0.0, ior=1.45, region="transmissive", colour=(1.0, 1.0, 1.0)):
         return {"region": region, "appearance": {"inputs": {
             "transmission": {"value": transmission}, "roughness": {"value": roughness}, "ior": {"value": ior},
@@ -214,6 +214,11 @@ def test_only_smooth_fully_transmissive_nearly_colourless_glass_is_bent():
     textured = material()
     textured["appearance"]["inputs"]["base_colour"] = {"varies": "driven by the Image Texture node 'Label'"}
     assert smooth_glass(textured) is None
+    with_volume = material()  # glTF-Blender-IO's 16_volume.blend: tinted by the depth crossed
+    with_volume["appearance"]["other_shaders"] = ["volume 'Volume Absorption'"]
+    assert smooth_glass(with_volume) is None
+    with_volume["appearance"]["other_shaders"] = []
+    assert smooth_glass(with_volume) == (1.45, (1.0, 1.0, 1.0))
     assert smooth_glass(material(region="diffuse")) is None and smooth_glass(None) is None
 
 

@@ -353,7 +353,8 @@ def auto_region_appearance(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]
 
 def auto_refraction(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
     """Rays bent through the scene's smooth glass (``refraction``, model_components/glass.py),
-    where Blender says what the glass is (smooth, fully transmissive, nearly colourless materials:
+    where Blender says what the glass is (smooth, fully transmissive, nearly colourless materials
+    with no volume or other shader mixed in:
     ``data.occupancy_prior.smooth_glass``) and where it is (the dataset's true surface, each
     triangle with its material).
 
@@ -372,8 +373,8 @@ def auto_refraction(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
     surfaces = prior.glass_surfaces()
     if surfaces is None:
         yield Proposal("refraction", "refraction", False,
-                       "no smooth glass in the scene (a transmissive material smooth, fully transmissive and nearly "
-                       "colourless): rays go straight")
+                       "no smooth glass in the scene (a transmissive material smooth, fully transmissive, nearly "
+                       "colourless, with no volume or other shader mixed in): rays go straight")
         return
     iors = sorted(set(surfaces[2].tolist()))
     yield Proposal("refraction", "refraction", True, REFRACTION_REASON.format(
