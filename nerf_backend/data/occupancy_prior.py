@@ -335,9 +335,10 @@ def smooth_glass(material: dict) -> tuple[float, tuple[float, float, float]] | N
     """
     if not isinstance(material, dict) or material.get("region") != "transmissive":
         return None
-    if (material.get("appearance") or {}).get("other_shaders"):
+    appearance = material.get("appearance") or {}
+    if appearance.get("other_shaders"):
         return None
-    inputs = (material.get("appearance") or {}).get("inputs") or {}
+    inputs = appearance.get("inputs") or {}
     value = {name: (inputs.get(name) or {}).get("value", default)
              for name, default in (("transmission", None), ("roughness", 0.5), ("metallic", 0.0),
                                    ("alpha", 1.0), ("ior", None))}
