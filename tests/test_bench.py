@@ -264,8 +264,12 @@ def test_bench_step_profiles_a_marched_preset_by_stage(tiny_demo_dataset, tmp_pa
         assert part["cpu_stolen_share"] is None or 0.0 <= part["cpu_stolen_share"] <= 1.0
     render = {row["stage"]: row for row in report["render"]["stages"]}
     # On this CPU the compiled march renders (spans, march and density in one pass).
-    assert report["render"]["compiled_march"] and list(render) == ["march", "colour", "other"]
+    assert report["render"]["compiled_march"] and list(render) == ["march", "colour", "shade", "other"]
     assert render["march"]["items"] >= render["colour"]["items"] > 0
+    # "shade": the rays given a colour; with deferred colour its network's FLOPs are its reference.
+    assert 0 < render["shade"]["items"] <= report["image_size"][0] * report["image_size"][1]
+    deferred = json.loads((out / "runs" / "auto" / "config.json").read_text())["config"]["grid"]["deferred_colour"]
+    assert (render["shade"]["reference_seconds"] is not None) == deferred
     assert "Through the compiled march" in result.stdout
     # Timed by default over whole periods of the occupancy refresh, at least 50 steps: each
     # refresh's cost is in the step as often as training pays it.

@@ -219,6 +219,25 @@ def test_the_compiled_shading_equals_pytorchs(bands, rays, threads, monkeypatch)
         assert float(expected[~unshaded].std()) > 0.05
 
 
+def test_the_compiled_shading_is_kept_until_the_network_or_the_basis_changes():
+    """``compiled_shade`` gives the same pass while the weights stay (a view's chunks each ask),
+    and a new one that shades as PyTorch does once an optimiser-like in-place step changes the
+    first layer or the basis."""
+    from nerf_backend.model_components.volume_rendering import shade_rays
+    field = _field(deferred_colour=True, direction_frequencies=2)
+    composited = _composited(field, 300, seed=4)
+    with torch.no_grad():
+        kept = compiled_colour.compiled_shade(field)
+        assert kept is not None and compiled_colour.compiled_shade(field) is kept
+        for weight in (field.colour_mlp[0].weight, field.appearance_basis.weight):
+            weight.add_(0.05 * torch.randn_like(weight))
+            fresh = compiled_colour.compiled_shade(field)
+            assert fresh is not kept
+            error = (shade_rays(*composited, fresh) - shade_rays(*composited, _pytorch_shade(field))).abs().max()
+            assert float(error) <= 5e-6
+            kept = fresh
+
+
 def test_a_network_the_passes_do_not_take_shades_through_pytorch_in_training_and_at_inference():
     field = _field(deferred_colour=True, hidden_width=32)
     with torch.no_grad():

@@ -300,6 +300,34 @@ def test_the_compiled_compositing_on_threads_keeps_each_rays_sum_whole(threads, 
     assert float((rows[threads] - expected).abs().max()) <= 1e-5 * float(expected.abs().max())
 
 
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_fresh_rows_are_set_to_their_rays_sums_and_the_rows_no_sample_reaches_are_left(threads, monkeypatch):
+    """``composite(..., fresh=True)`` (the render march's: each ray's samples in one call) into
+    rows holding NaN: each reached row is, bit for bit, the sum the call adds to a zeroed row,
+    over two calls split at a ray's end and on 1-3 threads; the rows of rays with no samples
+    (every third ray) are not written."""
+    field = _field(deferred=True, wall=False, seed=8)
+    features_fn = field.ray_features(torch.zeros(1, 3))
+    monkeypatch.setattr(torch, "get_num_threads", lambda: threads)
+    generator = torch.Generator().manual_seed(10)
+    lengths = torch.randint(1, 80, (400,), generator=generator)
+    lengths[::3] = 0
+    ray = torch.repeat_interleave(torch.arange(lengths.numel()), lengths)
+    points = ray.numel()
+    x = (torch.rand(points, 3, generator=generator) * 2 - 1) * torch.tensor([1.0, 1.0, 0.5])
+    weight = torch.rand(points, generator=generator)
+    added = torch.zeros(lengths.numel(), field.appearance_grid.out_dims)
+    features_fn.composite(x, ray, weight, added)
+    fresh = torch.full_like(added, float("nan"))
+    split = int((ray < 200).sum())  # ray 199's last sample ends the first call
+    assert 0 < split < points and int(ray[split - 1]) != int(ray[split])
+    for part in (slice(0, split), slice(split, points)):
+        features_fn.composite(x[part], ray[part], weight[part], fresh, fresh=True)
+    reached = lengths > 0
+    assert torch.equal(fresh[reached], added[reached])
+    assert bool(fresh[~reached].isnan().all()) and bool((added[reached] != 0).any())
+
+
 def _model(seed: int = 3):
     return deferred_grid_model(BOX, seed)
 

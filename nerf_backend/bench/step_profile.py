@@ -58,9 +58,10 @@ from .hardware import LINE_FLOATS, measure_hardware
 TRAINING_STAGES = ("data", "rays", "upkeep", "march", "density pass", "field", "composite", "loss", "backward",
                    "optimiser")
 # Rendering stages (marcher.render_marched_stopping_early); "other" is the rest of the view.
-# The compiled march (compiled_march.py) does spans, march and density in one pass: "march".
+# The compiled march (compiled_march.py) does spans, march and density in one pass: "march";
+# then "shade", each ray's colour from what it composited (deferred colour's network).
 RENDER_STAGES = ("spans", "march", "density", "colour")
-COMPILED_RENDER_STAGES = ("march", "colour")
+COMPILED_RENDER_STAGES = ("march", "colour", "shade")
 MARCH_BYTES_PER_SAMPLE = 10 * 4
 ADAM_BYTES_PER_VALUE = 7 * 4
 # Adam's touched rows lie scattered: value, gradient and the two moments, a random line each a row of 16.
@@ -155,6 +156,8 @@ def profile_marched_step(dataset: Path, preset: str, steps: int | None, out_dir:
     }
     if not compiled:
         render_references["density"] = _reference(hardware, flops=render_items["density"] * costs["density"].flops)
+    elif "shade" in costs:
+        render_references["shade"] = _reference(hardware, flops=render_items.get("shade", 0) * costs["shade"].flops)
     config = RunFolder(run_dir).read_config()
     report = {
         "dataset": str(Path(dataset).resolve()), "preset": preset, "overrides": list(overrides), "seed": seed,

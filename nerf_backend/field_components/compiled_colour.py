@@ -128,14 +128,16 @@ class CompiledRayFeatures:
     def __call__(self, x: Tensor, ray: Tensor) -> Tensor:
         return self._field.appearance_grid(self._field.normalise(x)).float()
 
-    def composite(self, x: Tensor, ray: Tensor, weight: Tensor, out: Tensor) -> None:
+    def composite(self, x: Tensor, ray: Tensor, weight: Tensor, out: Tensor, fresh: bool = False) -> None:
         """``out[ray] += weight · features(x)`` for samples whose ``ray`` ascends; ``out [R, F]``
-        float32 and contiguous."""
+        float32 and contiguous. With ``fresh``, every sample of each ray in ``ray`` is in this
+        call and no other: its row is set to their sum (what it held is not read), and rows
+        of rays not in ``ray`` are left as they are."""
         x, ray, weight = x.float().contiguous(), ray.to(torch.int64).contiguous(), weight.float().contiguous()
         status = self._library.composite_samples(
             ctypes.byref(self._network), ctypes.c_void_p(x.data_ptr()), ctypes.c_void_p(ray.data_ptr()),
             ctypes.c_void_p(weight.data_ptr()), ctypes.c_int64(x.shape[0]), ctypes.c_void_p(out.data_ptr()),
-            ctypes.c_int64(torch.get_num_threads()))
+            ctypes.c_int64(torch.get_num_threads()), ctypes.c_int32(fresh))
         if status != 0:  # compiled_ray_features only builds it for a grid the pass reads
             raise RuntimeError(f"colour_network.h refused the call (status {status})")
 
@@ -243,13 +245,16 @@ def _shading_layers(field) -> list[nn.Linear] | None:
 
 def compiled_shade(field) -> CompiledShade | None:
     """The compiled deferred shading of ``field`` at inference, or None where it does not apply
-    (``_shading_layers``; no C compiler)."""
+    (``_shading_layers``; no C compiler). Kept on ``field`` until the network's or the basis's
+    values change: a view's ten chunks each ask for it, and folding the basis into the first
+    layer again took lego's views 5 ms each."""
     layers = _shading_layers(field)
     library = compiled_grid_library() if layers is not None else None
     if library is None:
         return None
     library.shade_rays.restype = ctypes.c_int
-    return CompiledShade(field, layers, library)
+    weights = [*field.colour_mlp.parameters(), *field.appearance_basis.parameters()]
+    return kept_derived(field, "compiled shade", weights, lambda: CompiledShade(field, layers, library))
 
 
 class _ShadeTrainingNetwork(ctypes.Structure):

@@ -185,7 +185,8 @@ class MarchableField(nn.Module):
 
     def sample_cost(self) -> dict[str, SampleCost]:
         """One sample's cost in each of the field's reads: ``"density"``, ``"colour"``,
-        ``"field"`` (``forward``: both) and ``"frozen density"`` (``density_from_volume``).
+        ``"field"`` (``forward``: both) and ``"frozen density"`` (``density_from_volume``);
+        with deferred colour also ``"shade"``, the network's once a shaded ray.
         bench-step states the field's stages
         against the CPU's measured gather and FLOP rates with these."""
         raise NotImplementedError

@@ -225,6 +225,18 @@ class GridAppearance:
         first = self.colour_mlp[0]
         return (first.weight[:, :self.config.appearance_dims] @ self.appearance_basis.weight).t()
 
+    def shade_cost(self) -> SampleCost | None:
+        """Deferred colour's network once a shaded ray (None without deferred colour): the
+        basis and the network as PyTorch runs them, or with the basis folded into the first
+        layer (the compiled shading), whichever is fewer FLOPs; a ray's direction encoded."""
+        if not self.deferred:
+            return None
+        network = mlp_flops(self.colour_mlp)
+        first = self.colour_mlp[0]
+        unfolded = mlp_flops(self.appearance_basis) + network
+        folded = network + 2 * (self.appearance_grid.out_dims - self.config.appearance_dims) * first.out_features
+        return SampleCost(0, min(unfolded, folded))
+
     def appearance_cost(self) -> SampleCost:
         """One colour sample: each channel of a component reads 4 plane and 2 line values, and
         interpolating takes a multiply-add of each; then the basis and the network, or with

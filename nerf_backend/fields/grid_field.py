@@ -166,7 +166,8 @@ class GridField(VertexOccupancy, GridAppearance, MarchableField):
         density = 3 * (4 + 2) * self.config.density_channels
         costs = {"density": SampleCost(density, 2 * density), "colour": self.appearance_cost(),
                  "frozen density": SampleCost(8, 16)}  # one trilinear read of the density volume
-        return {**costs, "field": costs["density"] + costs["colour"]}
+        shade = self.shade_cost()
+        return {**costs, "field": costs["density"] + costs["colour"], **({"shade": shade} if shade else {})}
 
     @torch.no_grad()
     def density_volume(self) -> Tensor:

@@ -30,6 +30,7 @@ Example (where a C compiler is found):
 from __future__ import annotations
 
 import ctypes
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import torch
@@ -42,7 +43,7 @@ from ..kernels.build import kernel_or_note, load_kernel
 from .marcher import EXACT_STOP, OPAQUE_TRANSMITTANCE, RayStop, RayValues
 from .occupancy import OccupancyGrid
 from .render_output import RenderOutput
-from .volume_rendering import shade_rays
+from .volume_rendering import MIN_SHADED_WEIGHT, shade_rays
 
 ACTIVATIONS = {"softplus": 0, "laplace": 1, "neus": 2}  # march_render.c's ACTIVATION_*
 # Packed samples one call of the kernel may write (24 bytes each): bounds the memory of a chunk
@@ -154,6 +155,23 @@ def ray_box_stretch(origins: Tensor, directions: Tensor, box_min: Tensor, box_ma
     return t_near, t_far
 
 
+def _whole_ray_batches(sample_ray: Tensor, start: int, stop: int) -> Iterator[slice]:
+    """Slices of ``sample_ray[start:stop]`` (ascending) of about COLOUR_BATCH samples each, none
+    splitting a ray's samples: a batch runs on past COLOUR_BATCH to its last ray's end.
+
+    Example:
+        >>> [(s.start, s.stop) for s in _whole_ray_batches(torch.tensor([0] * 40000 + [1] * 3), 0, 40003)]
+        [(0, 40000), (40000, 40003)]
+    """
+    first = start
+    while first < stop:
+        end = min(first + COLOUR_BATCH, stop)
+        if end < stop:  # past every sample of the ray at end - 1
+            end = first + int(torch.searchsorted(sample_ray[first:stop], sample_ray[end - 1], right=True))
+        yield slice(first, end)
+        first = end
+
+
 def _pointer(tensor: Tensor) -> ctypes.c_void_p:
     return ctypes.c_void_p(tensor.data_ptr())
 
@@ -209,13 +227,14 @@ def render_marched_compiled(
             kept = written.tolist()
         with stage("colour", items=sum(kept)):
             for thread, kept_count in enumerate(kept):
-                for first in range(thread * region, thread * region + kept_count, COLOUR_BATCH):
-                    part = slice(first, min(first + COLOUR_BATCH, thread * region + kept_count))
-                    composited.add_weighted(ray_colour, sample_position[part], sample_ray[part], sample_weight[part])
+                for part in _whole_ray_batches(sample_ray, thread * region, thread * region + kept_count):
+                    composited.add_weighted(ray_colour, sample_position[part], sample_ray[part], sample_weight[part],
+                                            whole_rays=True)
         pending = (done == 0).nonzero().squeeze(1)
     transmittance, depth, skipped, coloured_weight = per_ray
     # The skipped weight takes the coloured samples' weighted mean colour; a ray with none keeps it black.
-    rgb = shade_rays(composited.values, coloured_weight, coloured_weight + skipped, directions, shade_fn)
+    with stage("shade", items=lambda: int((coloured_weight > MIN_SHADED_WEIGHT).sum())):
+        rgb = shade_rays(composited.values, coloured_weight, coloured_weight + skipped, directions, shade_fn)
     return RenderOutput(rgb=rgb + transmittance[:, None] * background, depth=depth, opacity=1.0 - transmittance,
                         weights=None, t_edges=None)
 

@@ -319,17 +319,23 @@ class RayValues:
             self._values = values.new_zeros((self.rays, values.shape[1]))
         self._values.index_add_(0, ray, values)
 
-    def add_weighted(self, ray_colour: RayColourFn, x: Tensor, ray: Tensor, weight: Tensor) -> None:
+    def add_weighted(self, ray_colour: RayColourFn, x: Tensor, ray: Tensor, weight: Tensor,
+                     whole_rays: bool = False) -> None:
         """Add ``weight · ray_colour(x, ray)`` to rays ``ray [N]`` (ascending), in the function's
-        own fused pass where it has one (``composite(x, ray, weight, out)`` and ``channels``:
-        ``compiled_colour.CompiledRayFeatures``)."""
+        own fused pass where it has one (``composite(x, ray, weight, out, fresh)`` and
+        ``channels``: ``compiled_colour.CompiledRayFeatures``). ``whole_rays``: the caller's
+        promise that each ray's samples come in one call, every call; then the fused pass sets
+        each reached ray's row rather than adding to a zeroed one, and the rows of rays no
+        sample reaches hold nothing defined (they have no coloured weight: ``shade_rays``
+        leaves them black without reading them)."""
         fused = getattr(ray_colour, "composite", None)
         if fused is None:
             self.add(ray, weight[:, None] * ray_colour(x, ray).to(weight.dtype))
             return
         if self._values is None:
-            self._values = x.new_zeros((self.rays, ray_colour.channels), dtype=torch.float32)
-        fused(x, ray, weight, self._values)
+            shape = (self.rays, ray_colour.channels)
+            self._values = (x.new_empty if whole_rays else x.new_zeros)(shape, dtype=torch.float32)
+        fused(x, ray, weight, self._values, fresh=whole_rays)
 
     @property
     def values(self) -> Tensor:
