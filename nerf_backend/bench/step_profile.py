@@ -145,19 +145,11 @@ def profile_marched_step(dataset: Path, preset: str, steps: int | None, out_dir:
         render_seconds = time.perf_counter() - start
 
     train_items, render_items = timer.items, render_timer.items
-    colour_flops = costs["colour"].flops
     train_references = _training_references(hardware, train_items, costs, model.field.BACKWARD_WORK)
     compiled_training = bool(train_items.get(COMPILED_TRAINING_MARCH))
     compiled = "spans" not in render_timer.seconds
     render_stages = COMPILED_RENDER_STAGES if compiled else RENDER_STAGES
-    render_references = {
-        "march": _reference(hardware, bytes_moved=render_items["march"] * MARCH_BYTES_PER_SAMPLE),
-        "colour": _reference(hardware, flops=render_items["colour"] * colour_flops),
-    }
-    if not compiled:
-        render_references["density"] = _reference(hardware, flops=render_items["density"] * costs["density"].flops)
-    elif "shade" in costs:
-        render_references["shade"] = _reference(hardware, flops=render_items.get("shade", 0) * costs["shade"].flops)
+    render_references = _render_references(hardware, render_items, costs, compiled)
     config = RunFolder(run_dir).read_config()
     report = {
         "dataset": str(Path(dataset).resolve()), "preset": preset, "overrides": list(overrides), "seed": seed,
@@ -254,6 +246,17 @@ def read_profile(path: Path) -> dict:
                                                for key in ("training", "render")):
         raise NerfError(f"{path}: not a marched preset's bench-step profile (no training and render stages)")
     return report
+
+
+def _render_references(hardware: dict, items: dict, costs: dict, compiled: bool) -> dict:
+    """Each rendering stage's least time for its work at the machine's measured rates."""
+    references = {"march": _reference(hardware, bytes_moved=items["march"] * MARCH_BYTES_PER_SAMPLE),
+                  "colour": _reference(hardware, flops=items["colour"] * costs["colour"].flops)}
+    if not compiled:
+        references["density"] = _reference(hardware, flops=items["density"] * costs["density"].flops)
+    elif "shade" in costs:  # deferred colour's network, once a shaded ray
+        references["shade"] = _reference(hardware, flops=items.get("shade", 0) * costs["shade"].flops)
+    return references
 
 
 def _training_references(hardware: dict, items: dict, costs: dict, backward_work: float) -> dict:
