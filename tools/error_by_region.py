@@ -16,7 +16,10 @@ Cycles seed (``datasets_gen ... --seed 1``: the test views do not depend on it),
 truth's own noise is measured too: half the squared difference of the two renders is one
 render's variance about the noise-free image, so it is the error a perfect model would make.
 Each region's share of its error that is the ground truth's noise is printed beside it, and the
-PSNR a perfect model would score."""
+PSNR a perfect model would score.
+
+With ``--bright T``, each material's pixels whose ground truth is brighter than T in some
+channel (on a dark glossy surface: a light's highlight) are counted apart from its others."""
 
 from __future__ import annotations
 
@@ -37,6 +40,20 @@ from nerf_contract.dataset_layout import APPEARANCE_REGIONS
 
 EDGE_ALPHA = (0.02, 0.98)
 BACKGROUND, EDGE = -1, -2
+BRIGHT = 100  # added to a material's label where its ground truth is bright (--bright)
+
+
+def split_bright(labels: np.ndarray, truth: np.ndarray, threshold: float | None) -> np.ndarray:
+    """``labels`` with each material's pixels brighter than ``threshold`` (any channel of
+    ``truth [..., 3]``) moved to label + BRIGHT; edges and background kept.
+
+    Example:
+        >>> split_bright(np.array([2, 2, EDGE]), np.array([[0.9, 0.1, 0.1], [0.2] * 3, [1.0] * 3]), 0.5).tolist()
+        [102, 2, -2]
+    """
+    if threshold is None:
+        return labels
+    return np.where((labels >= 0) & (truth.max(axis=-1) > threshold), labels + BRIGHT, labels)
 
 
 def nearest_region(regions: np.ndarray) -> np.ndarray:
@@ -65,6 +82,7 @@ def main() -> None:
     parser.add_argument("dataset", type=Path)
     parser.add_argument("renders", type=Path)
     parser.add_argument("--noise-from", type=Path, help="the same test views rendered with another Cycles seed")
+    parser.add_argument("--bright", type=float, help="count each material's pixels brighter than this apart")
     args = parser.parse_args()
     split = load_split(args.dataset, "test")
     other = load_split(args.noise_from, "test") if args.noise_from else None
@@ -84,7 +102,8 @@ def main() -> None:
         truth = split.rgb_on_white(index).numpy().astype(np.float64)
         render = read_rgb(args.renders / f"{split.image_paths[index].stem}.png").astype(np.float64)
         error = ((render - truth) ** 2).sum(axis=-1).reshape(-1)
-        labels = pixel_regions(split, index, regions, np.asarray(prior.box_min), prior.cell_size)
+        labels = split_bright(pixel_regions(split, index, regions, np.asarray(prior.box_min), prior.cell_size),
+                              truth.reshape(-1, 3), args.bright)
         if other is not None:
             noise = ((other.rgb_on_white(index).numpy().astype(np.float64) - truth) ** 2).sum(axis=-1).reshape(-1) / 2
         for label in np.unique(labels):
@@ -103,7 +122,9 @@ def main() -> None:
     for label in sorted(error_sum):
         without = -10 * math.log10(max(total - error_sum[label], 1e-30) / (3 * pixels))
         noise = f"  of it noise {noise_sum[label] / max(error_sum[label], 1e-30):5.0%}" if noise_sum else ""
-        print(f"{names.get(label, APPEARANCE_REGIONS[label]):30s} pixels {pixel_count[label] / pixels:6.1%}  "
+        name = names.get(label) or (f"{APPEARANCE_REGIONS[label - BRIGHT]}, bright" if label >= BRIGHT
+                                    else APPEARANCE_REGIONS[label])
+        print(f"{name:30s} pixels {pixel_count[label] / pixels:6.1%}  "
               f"error {error_sum[label] / total:6.1%}  PSNR were it zero {without:.2f} (+{without - psnr:.2f}){noise}")
 
 
