@@ -155,3 +155,26 @@ def test_a_checkpoint_round_trip_continues_the_same_steps(tmp_path):
         optimiser.step()
     for a, b in zip(first.parameters(), second.parameters()):
         assert float((a - b).detach().abs().max()) < 1e-7
+
+
+def test_what_is_kept_of_a_grids_values_is_made_again_after_a_sparse_step():
+    """The kernel writes the rows through a pointer; the step moves each parameter's version on,
+    so a cache keyed on the values (``kept_derived``: the half tables, the dense density) is made
+    again. Without it, training's validations rendered lego through the first validation's half
+    tables (about 20 dB where the run scored 35.5)."""
+    from nerf_backend.core.tensor_keys import kept_derived
+    grid, _ = _pair()
+    optimiser = RowSparseAdam([{"params": list(grid.parameters()), "lr": LR}], grids=[grid], betas=BETAS, eps=EPS)
+
+    def kept():
+        return kept_derived(grid, "copies", list(grid.parameters()), lambda: [p.detach().clone() for p in grid.parameters()])
+
+    before = kept()
+    x = torch.rand(300, 3, generator=torch.Generator().manual_seed(2)) * 2 - 1
+    (grid(x) ** 2).sum().backward()
+    optimiser.step()
+    assert optimiser.rows_updated > 0 and all(p.grad is None for p in grid.parameters())  # the kernel's step
+    after = kept()
+    assert after is not before
+    assert all(torch.equal(copy, p) for copy, p in zip(after, grid.parameters()))
+    assert any(not torch.equal(old, new) for old, new in zip(before, after))

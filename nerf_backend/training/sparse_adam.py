@@ -35,6 +35,7 @@ import ctypes
 
 import torch
 from torch import Tensor
+from torch.autograd.graph import increment_version
 
 from ..field_components.compiled_grid import channel_rows, compiled_grid_library
 from .adam import Adam
@@ -124,6 +125,12 @@ class RowSparseAdam(Adam):
         rows = floats = 0
         for group, parameter, sink, index in sparse:
             updated = self._sparse_step(group, parameter, sink.gradients[index], sink.marks[index])
+            # The kernel wrote the values through a pointer, which PyTorch does not see: its
+            # version counter moves on here, as an in-place operation's does, so that what is
+            # kept of the old values (tensor_keys.kept_derived: the half-precision tables, the
+            # dense density) is made again. Without it, the half tables made at training's
+            # first validation stayed, and lego's later validations scored about 20 dB.
+            increment_version(parameter)
             rows += updated
             floats += updated * parameter.shape[1]
         self.rows_updated, self.row_floats_updated, self.floats_updated = rows, floats, floats + dense
