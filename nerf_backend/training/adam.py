@@ -25,6 +25,7 @@ from collections.abc import Iterable
 
 import torch
 from torch import Tensor
+from torch.autograd.graph import increment_version
 
 # The settings a group carries besides its parameters.
 GROUP_SETTINGS = ("lr", "initial_lr", "betas", "eps")
@@ -99,6 +100,11 @@ class Adam:
                 torch._fused_adam_(parameters, [p.grad for p in parameters], [s["exp_avg"] for s in states],
                                    [s["exp_avg_sq"] for s in states], [], steps, lr=lr, beta1=beta1, beta2=beta2,
                                    weight_decay=0.0, eps=eps, amsgrad=False, maximize=False)
+                # The fused kernel leaves the parameters' version counters where they were (on the
+                # CPU, torch 2.13): moved on here, as an in-place operation's would be, so that what
+                # is kept of the old values (tensor_keys.kept_derived) is made again.
+                for parameter in parameters:
+                    increment_version(parameter)
                 return
             except (RuntimeError, NotImplementedError, AttributeError):  # not built for this device
                 _unfused.add(device)
