@@ -212,7 +212,8 @@ def render_marched_compiled(
     sample_position = torch.empty((threads * region, 3), **as_float)
     sample_weight = torch.empty(threads * region, **as_float)
     written = torch.zeros(threads, dtype=torch.int64)
-    composited = RayValues(origins, rays)  # Σ w·colour (or features) of the coloured samples
+    # Σ w·colour (or features) of the coloured samples; a ray's samples come in one batch
+    composited = RayValues(origins, rays, whole_rays=True)
     pending: Tensor | None = None  # the rays still to march (None: all)
     while pending is None or pending.numel() > 0:
         with stage("march", items=lambda: int(counters[0])):
@@ -228,8 +229,7 @@ def render_marched_compiled(
         with stage("colour", items=sum(kept)):
             for thread, kept_count in enumerate(kept):
                 for part in _whole_ray_batches(sample_ray, thread * region, thread * region + kept_count):
-                    composited.add_weighted(ray_colour, sample_position[part], sample_ray[part], sample_weight[part],
-                                            whole_rays=True)
+                    composited.add_weighted(ray_colour, sample_position[part], sample_ray[part], sample_weight[part])
         pending = (done == 0).nonzero().squeeze(1)
     transmittance, depth, skipped, coloured_weight = per_ray
     # The skipped weight takes the coloured samples' weighted mean colour; a ray with none keeps it black.

@@ -307,10 +307,14 @@ def colour_worthy(weight: Tensor, ray: Tensor, rays: int) -> Tensor:
 
 class RayValues:
     """A sum per ray of values whose width (colours, or a field's appearance features) is known
-    at the first ``add``; no values yet reads as zero colours."""
+    at the first ``add``; no values yet reads as zero colours. ``whole_rays``: the caller's
+    promise that each ray's samples all come in one call of ``add_weighted``; then a fused pass
+    sets each reached ray's row rather than adding to a zeroed one, and the rows of rays no
+    sample reaches hold nothing defined (they have no coloured weight: ``shade_rays`` leaves
+    them black without reading them)."""
 
-    def __init__(self, like: Tensor, rays: int) -> None:
-        self._like, self.rays = like, rays
+    def __init__(self, like: Tensor, rays: int, whole_rays: bool = False) -> None:
+        self._like, self.rays, self.whole_rays = like, rays, whole_rays
         self._values: Tensor | None = None
 
     def add(self, ray: Tensor, values: Tensor) -> None:
@@ -319,23 +323,18 @@ class RayValues:
             self._values = values.new_zeros((self.rays, values.shape[1]))
         self._values.index_add_(0, ray, values)
 
-    def add_weighted(self, ray_colour: RayColourFn, x: Tensor, ray: Tensor, weight: Tensor,
-                     whole_rays: bool = False) -> None:
+    def add_weighted(self, ray_colour: RayColourFn, x: Tensor, ray: Tensor, weight: Tensor) -> None:
         """Add ``weight · ray_colour(x, ray)`` to rays ``ray [N]`` (ascending), in the function's
         own fused pass where it has one (``composite(x, ray, weight, out, fresh)`` and
-        ``channels``: ``compiled_colour.CompiledRayFeatures``). ``whole_rays``: the caller's
-        promise that each ray's samples come in one call, every call; then the fused pass sets
-        each reached ray's row rather than adding to a zeroed one, and the rows of rays no
-        sample reaches hold nothing defined (they have no coloured weight: ``shade_rays``
-        leaves them black without reading them)."""
+        ``channels``: ``compiled_colour.CompiledRayFeatures``)."""
         fused = getattr(ray_colour, "composite", None)
         if fused is None:
             self.add(ray, weight[:, None] * ray_colour(x, ray).to(weight.dtype))
             return
         if self._values is None:
             shape = (self.rays, ray_colour.channels)
-            self._values = (x.new_empty if whole_rays else x.new_zeros)(shape, dtype=torch.float32)
-        fused(x, ray, weight, self._values, fresh=whole_rays)
+            self._values = (x.new_empty if self.whole_rays else x.new_zeros)(shape, dtype=torch.float32)
+        fused(x, ray, weight, self._values, fresh=self.whole_rays)
 
     @property
     def values(self) -> Tensor:
