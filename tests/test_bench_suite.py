@@ -17,6 +17,7 @@ from PIL import Image
 
 from datasets_gen.core.builtin_scenes import SUITE_BUILTINS, TRAP_SCENES
 from nerf_backend.bench import scene_blank_psnr
+from nerf_backend.data.occupancy_prior import GLASS_MIN_WALL_SHARE, load_occupancy_prior
 from nerf_backend.bench.suite import SuiteDataset, scene_summary
 
 TINY = ["--resolution", "24", "--train-views", "2", "--val-views", "1", "--test-views", "1", "--samples", "4"]
@@ -170,6 +171,12 @@ def test_trap_scenes_are_what_they_say(tiny_suite):
         assert set(shares) == {region, "diffuse"} and shares[region] > 0.1, (name, shares)
         found = {m["name"]: m for m in profiles[name]["materials"]}[material]
         assert found["region"] == region and found["view_dependent"], (name, found)
+    # The hollow glass: one body of smooth glass whose walls are thin for its size (its mean chord
+    # under a tenth of its diagonal), which the plan leaves to the field with straight rays.
+    dish = load_occupancy_prior(tiny_suite / "glass_dish", "solid")
+    assert dish.glass_surfaces() is None and list(dish.glass_materials) == list(dish.thin_glass())
+    assert [len(shares) for shares in dish.thin_glass().values()] == [1], dish.thin_glass()
+    assert max(dish.thin_glass().values())[0] < 0.5 * GLASS_MIN_WALL_SHARE, dish.thin_glass()
     roughness = {name: {m["name"]: m for m in profiles[name]["materials"]}["silver"]["appearance"]["inputs"]["roughness"]["value"]
                  for name in ("mirror_in_room", "rough_in_room")}
     # The same objects in two finishes (Blender keeps the values in single precision).

@@ -13,6 +13,7 @@ from .demo_scene import build_demo_scene
 from .trap_scenes import (
     build_bright_object,
     build_glass_and_gloss,
+    build_glass_dish,
     build_glass_over_checker,
     build_ground_plane,
     build_mirror_in_room,
@@ -34,6 +35,7 @@ BUILDERS: dict[str, Callable[[], bpy.types.Scene]] = {
     "mirror_in_room": build_mirror_in_room,
     "rough_in_room": build_rough_in_room,
     "thin_film_coat": build_thin_film_coat,
+    "glass_dish": build_glass_dish,
 }
 assert BUILDERS.keys() == BUILTIN_SCENES.keys(), "every registered scene has a builder, and no other"
 

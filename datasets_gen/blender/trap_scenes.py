@@ -32,12 +32,17 @@ The material traps (issue 60), each with one kind of surface whose colour change
   pattern), roughness 0.03 (a mirror) and 0.45 (blurred reflections).
 * `thin_film_coat`: a dark glossy sphere and torus coated with a thin film (450 and 300 nm, IOR
   1.33; Blender 4.2 and later): iridescent colours that shift with the view.
+* `glass_dish`: a shallow dish of clear glass with a thin-film coat (walls 0.035 thick, 1.8
+  across; IOR 1.5, film 400 nm), six glossy olives in it, under a uniform world: hollow glass, as
+  the glTF sample IridescentDishWithOlives is, where what is seen through the walls is only
+  shifted, and the glass's rims and silhouette show what Cycles' many bounces make of them.
 
 Built with the demo's helpers (`demo_scene`), with the data API only; deterministic.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import bmesh
@@ -259,5 +264,48 @@ def build_thin_film_coat(name: str = "NeRF thin_film_coat") -> "bpy.types.Scene"
     ring = add_object(scene, "coated torus", torus_mesh("coated torus", 0.28, 0.09), (0.4, 0.35, top + 0.37),
                       rotation_x_deg=90.0, rotation_z_deg=-30.0)
     assign(ring, _thin_film("oil film", (0.10, 0.08, 0.06), 300.0))
+    add_sun(scene, name, energy=3.0, rotation_x_deg=40.0, rotation_z_deg=30.0)
+    return _finish(scene)
+
+
+def _dish_mesh(name: str, radius: float, height: float, wall: float, floor_radius: float) -> "bpy.types.Mesh":
+    """A dish turned about z: a flat floor out to ``floor_radius``, then a wall curving up to
+    ``radius`` at ``height``, ``wall`` thick everywhere, closed at the rim (one closed surface)."""
+    steps = 10
+    outer = [(0.0, 0.0), (floor_radius, 0.0)] + [
+        (floor_radius + (radius - floor_radius) * math.sin(k / steps * math.pi / 2),
+         height * (1.0 - math.cos(k / steps * math.pi / 2))) for k in range(1, steps + 1)]
+    inner = [(max(r - wall, 0.0) if k > 1 else r, z + wall) for k, (r, z) in enumerate(outer)][::-1]
+    inner[0] = (radius - wall, height)
+    bm = bmesh.new()
+    verts = [bm.verts.new((r, 0.0, z)) for r, z in outer + inner]
+    edges = [bm.edges.new((verts[i], verts[i + 1])) for i in range(len(verts) - 1)]
+    bmesh.ops.spin(bm, geom=verts + edges, cent=(0.0, 0.0, 0.0), axis=(0.0, 0.0, 1.0), angle=2.0 * math.pi,
+                   steps=64, use_merge=True)
+    bmesh.ops.remove_doubles(bm, verts=bm.verts, dist=1e-5)
+    bmesh.ops.recalc_face_normals(bm, faces=bm.faces)
+    return mesh_from_bmesh(name, bm, smooth=True)
+
+
+def build_glass_dish(name: str = "NeRF glass_dish") -> "bpy.types.Scene":
+    scene = new_protocol_scene(name)
+    scene.world = plain_world(name, (0.9, 0.9, 0.9), 0.8)
+    bottom = -0.35
+    dish = add_object(scene, "glass dish", _dish_mesh("glass dish", 1.0, 0.3, 0.035, 0.55), (0.0, 0.0, bottom))
+    glass = make_material("iridescent glass", (1.0, 1.0, 1.0), roughness=0.0, transmission=1.0, ior=1.5)
+    if "Thin Film Thickness" not in principled_bsdf(glass).inputs:
+        raise RuntimeError(f"glass_dish needs the Principled BSDF's thin film (Blender 4.2 or later), "
+                           f"not in Blender {bpy.app.version_string}")
+    set_node_input(principled_bsdf(glass), ["Thin Film Thickness"], 400.0)
+    set_node_input(principled_bsdf(glass), ["Thin Film IOR"], 1.4)
+    assign(dish, glass)
+    olive = make_material("olive", (0.25, 0.30, 0.05), roughness=0.25)
+    for index, (x, y, turn, lift) in enumerate([(-0.3, -0.1, 10.0, 0.0), (0.05, -0.3, 70.0, 0.0),
+                                                (0.3, 0.05, 130.0, 0.0), (-0.05, 0.25, 40.0, 0.0),
+                                                (-0.35, 0.3, 100.0, 0.0), (0.1, 0.0, 160.0, 0.1)]):
+        mesh = sphere_mesh(f"olive {index}", 0.14)
+        mesh.transform(Matrix.Diagonal((1.0, 0.72, 0.72, 1.0)))
+        assign(add_object(scene, f"olive {index}", mesh, (x, y, bottom + 0.035 + 0.10 + lift), rotation_z_deg=turn),
+               olive)
     add_sun(scene, name, energy=3.0, rotation_x_deg=40.0, rotation_z_deg=30.0)
     return _finish(scene)

@@ -60,13 +60,16 @@ _SCENES = (
                  "reflections", "fit"),
     BuiltinScene("thin_film_coat", "a dark sphere and torus under a thin-film coat (Blender 4.2+): iridescence",
                  "fit"),
+    BuiltinScene("glass_dish", "a thin-walled glass dish with a thin-film coat and olives in it (Blender 4.2+): "
+                 "hollow glass", "fit"),
 )
 
 #: Every built-in scene by name.
 BUILTIN_SCENES: dict[str, BuiltinScene] = {scene.name: scene for scene in _SCENES}
 #: The scenes standing for a known failure class.
 TRAP_SCENES: tuple[str, ...] = ("bright_object", "thin_structure", "off_centre", "ground_plane", "glass_and_gloss",
-                                "glass_over_checker", "mirror_in_room", "rough_in_room", "thin_film_coat")
+                                "glass_over_checker", "mirror_in_room", "rough_in_room", "thin_film_coat",
+                                "glass_dish")
 #: What `--suite` renders besides the given .blend files: the trap scenes and the demo.
 SUITE_BUILTINS: tuple[str, ...] = TRAP_SCENES + ("demo",)
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .spherical_harmonics import sh_basis, sh_count
+from .spherical_harmonics import C0, sh_basis, sh_count
 
 # The world's light seen through glass, as spherical harmonics of the direction (degree 2: a
 # uniform world, or one brighter above than below).
@@ -29,6 +29,23 @@ class Environment(nn.Module):
     def __init__(self) -> None:
         super().__init__()
         self.harmonics = nn.Parameter(torch.zeros((sh_count(ENVIRONMENT_DEGREE), 3)))
+
+    def start_at(self, colour: tuple[float, float, float]) -> None:
+        """Start as one uniform ``colour`` in every direction (the world Blender says the scene
+        has, as a pixel shows it), learned on from there. Started grey instead, a glass dish on a
+        uniform world at 100×100 learned its world seen below it as 0.68 in 120 s where the
+        images show 0.86: only the rays bent through the glass teach it.
+
+        Example:
+            >>> environment = Environment()
+            >>> environment.start_at((0.863, 0.2, 0.5))
+            >>> [round(v, 3) for v in environment(torch.tensor([[0.0, 0.6, -0.8]]))[0].tolist()]
+            [0.863, 0.2, 0.5]
+        """
+        light = torch.tensor(colour, dtype=self.harmonics.dtype).clamp(0.01, 0.99)
+        with torch.no_grad():
+            self.harmonics.zero_()
+            self.harmonics[0] = torch.logit(light) / C0
 
     def forward(self, directions: Tensor) -> Tensor:
         return torch.sigmoid(sh_basis(directions.to(self.harmonics.dtype), ENVIRONMENT_DEGREE) @ self.harmonics)

@@ -14,7 +14,8 @@ The light through the glass is tinted by the glass's colour, learned from Blende
 to start with: Cycles tints the light at each crossing of the surface, in and out). Left out,
 knowingly: the reflections inside the glass after the first (Cycles follows them; at IOR 1.45
 they carry a few percent), absorption by depth (a volume), rough glass (the rule takes only
-smooth, fully transmissive materials), and a camera inside glass.
+smooth, fully transmissive materials), thin-walled glass (a dish, a cup: left to the field,
+straight, ``data.occupancy_prior.GLASS_MIN_WALL_SHARE``), and a camera inside glass.
 A mesh that is not closed (a single-sided pane) lets the ray through unbent where no exit is found.
 
 Example:
