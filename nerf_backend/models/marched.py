@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Callable, Iterator
+from typing import Callable, Iterator, NamedTuple
 
 import torch
 from torch import Tensor
@@ -74,6 +74,18 @@ CONTENT_BLOCK = 8
 # against 33.05 with 1, in 4 794 steps against 6 311; a glass cup on a checkerboard, bent, 28.47
 # against 28.81 (docs/benchmarks.md, "Rays bent through glass").
 GLASS_BODIES = 1
+
+
+class _GlassLevel(NamedTuple):
+    """One level of the rays ``MarchedModel`` marches through glass: the camera's rays, then
+    those beyond each piece of glass; ``paths``: where they meet the next piece (None: the last)."""
+
+    origins: Tensor
+    directions: Tensor
+    t_near: Tensor
+    t_far: Tensor
+    background: Tensor
+    paths: GlassPaths | None
 
 
 class MarchedModel(Model):
@@ -388,7 +400,7 @@ class MarchedModel(Model):
         samples, the deepest level first."""
         box_min, box_max = self.field.box_min.to(origins.dtype), self.field.box_max.to(origins.dtype)
         count = origins.shape[0]
-        levels: list[tuple[Tensor, Tensor, Tensor, Tensor, Tensor, GlassPaths | None]] = []
+        levels: list[_GlassLevel] = []
         backgrounds = torch.as_tensor(background, dtype=origins.dtype, device=origins.device).expand(count, 3)
         while True:
             if paths is not None:  # marched up to the glass, over nothing: what is beyond shows there
@@ -397,7 +409,7 @@ class MarchedModel(Model):
                 t_far = t_far.index_put((met,), torch.maximum(torch.minimum(t_far.index_select(0, met),
                                                                             paths.t_entry.to(t_far.dtype)), near_met))
                 backgrounds = backgrounds.index_fill(0, met, 0.0)
-            levels.append((origins, directions, t_near, t_far, backgrounds, paths))
+            levels.append(_GlassLevel(origins, directions, t_near, t_far, backgrounds, paths))
             if paths is None:
                 break
             origins, directions = paths.origins, paths.directions
@@ -405,15 +417,15 @@ class MarchedModel(Model):
             t_near = torch.zeros_like(t_far)
             backgrounds = self.environment(directions).to(origins.dtype)
             paths = self.glass.trace(origins, directions) if len(levels) < GLASS_BODIES else None
-        out = self._march_rays(*(torch.cat([level[part] for level in levels]) for part in range(5)), generator)[0]
-        sizes = [level[0].shape[0] for level in levels]
-        rgb, opacity = out.rgb.split(sizes), out.opacity.split(sizes)
+        out = self._march_rays(*(torch.cat([getattr(level, name) for level in levels])
+                                 for name in ("origins", "directions", "t_near", "t_far", "background")), generator)[0]
+        rgb, opacity = (values.split([level.origins.shape[0] for level in levels]) for values in (out.rgb, out.opacity))
         seen_beyond = rgb[-1]
-        for level in range(len(levels) - 2, -1, -1):
-            met = levels[level][5].rays
-            seen = levels[level][5].colour_seen(seen_beyond)
-            seen_beyond = rgb[level].index_add(0, met, (1.0 - opacity[level].index_select(0, met))[:, None]
-                                               * seen.to(out.rgb.dtype))
+        for index in range(len(levels) - 2, -1, -1):
+            paths = levels[index].paths
+            seen = paths.colour_seen(seen_beyond).to(out.rgb.dtype)
+            through = (1.0 - opacity[index].index_select(0, paths.rays))[:, None]
+            seen_beyond = rgb[index].index_add(0, paths.rays, through * seen)
         return RenderOutput(rgb=seen_beyond, depth=out.depth[:count], opacity=out.opacity[:count],
                             weights=None if out.weights is None else out.weights[:count],
                             t_edges=None if out.t_edges is None else out.t_edges[:count],
