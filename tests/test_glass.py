@@ -348,7 +348,8 @@ def test_thin_walled_glass_goes_straight_and_only_thick_glass_is_bent(tmp_path):
     thin the plan says so and sends the rays straight."""
     from datasets_gen.io.surface_mesh import weld, write_ply_atomic
 
-    from nerf_backend.data.occupancy_prior import GLASS_MIN_WALL_SHARE, wall_share
+    from nerf_backend.core.mesh_shape import wall_share
+    from nerf_backend.data.occupancy_prior import GLASS_MIN_WALL_SHARE
     from nerf_backend.planning.plan import plan_run
     from nerf_backend.planning.rules import RULES, _example, auto_refraction
 
