@@ -370,6 +370,7 @@ def test_thin_walled_glass_goes_straight_and_only_thick_glass_is_bent(tmp_path):
     assert both.without_glass().occupied[2, 2, 2]  # the shell's cells stay the field's
 
     facts, _ = _example(before=auto_refraction)
-    for glass, bent, says in ((both, True, "1 thin-walled bodies of glass"), (prior(shell), False, "thin-walled (1 bodies")):
+    for glass, bent, says in ((both, True, "1 body of thin-walled glass"),
+                              (prior(shell), False, "thin-walled (1 body,")):
         plan = plan_run(dataclasses.replace(facts, priors={"solid": glass}), RULES[:RULES.index(auto_refraction) + 1])
         assert plan.config.refraction is bent and says in plan.decisions["refraction"]["reason"]
