@@ -61,14 +61,23 @@ def mesh_bodies(vertices: np.ndarray, faces: np.ndarray) -> list[np.ndarray]:
     face_labels = labels[faces[:, 0]]
     order = np.argsort(face_labels, kind="stable")
     pieces = np.split(order, np.flatnonzero(np.diff(face_labels[order])) + 1)
-    boxes = [(vertices[faces[piece]].reshape(-1, 3).min(axis=0), vertices[faces[piece]].reshape(-1, 3).max(axis=0))
-             for piece in pieces]
-    bodies: list[tuple[np.ndarray, np.ndarray, list[np.ndarray]]] = []
-    for index in sorted(range(len(pieces)), key=lambda i: -float(np.prod(boxes[i][1] - boxes[i][0]))):
-        low, high = boxes[index]
-        outer = next((body for body in bodies if (body[0] <= low).all() and (high <= body[1]).all()), None)
-        if outer is None:
-            bodies.append((low, high, [pieces[index]]))
-        else:
-            outer[2].append(pieces[index])
-    return sorted((np.sort(np.concatenate(body[2])) for body in bodies), key=lambda body: int(body[0]))
+    corners = vertices[faces[order]].reshape(len(order), 9)
+    starts = np.concatenate([[0], np.cumsum([len(piece) for piece in pieces])[:-1]])
+    low = np.minimum.reduceat(corners.reshape(-1, 3, 3).min(axis=1), starts)
+    high = np.maximum.reduceat(corners.reshape(-1, 3, 3).max(axis=1), starts)
+    # Largest box first, each piece joins the first kept body whose box holds its own (the
+    # test a body at a time in numpy: shattered glass has thousands of pieces).
+    owner = np.empty(len(pieces), dtype=np.int64)
+    kept_low, kept_high, kept = np.empty_like(low), np.empty_like(high), np.empty(len(pieces), dtype=np.int64)
+    count = 0
+    for index in np.argsort(-np.prod(high - low, axis=1), kind="stable").tolist():
+        holds = ((kept_low[:count] <= low[index]) & (high[index] <= kept_high[:count])).all(axis=1)
+        found = int(holds.argmax()) if holds.any() else -1
+        if found < 0:
+            kept_low[count], kept_high[count], kept[count], found = low[index], high[index], index, count
+            count += 1
+        owner[index] = kept[found]
+    bodies: dict[int, list[np.ndarray]] = {}
+    for index, piece in enumerate(pieces):
+        bodies.setdefault(int(owner[index]), []).append(piece)
+    return sorted((np.sort(np.concatenate(parts)) for parts in bodies.values()), key=lambda body: int(body[0]))
