@@ -27,6 +27,9 @@ PRIOR_NAME = "occupancy_prior.npz"
 # each with its ``region`` and why). Ordered by how much a surface's colour changes with the
 # view: where regions share a cell, the later one is kept.
 APPEARANCE_REGIONS = ("none", "diffuse", "glossy", "metal", "thin_film", "transmissive")
+# The profile's ``world`` ``kind`` for a world of one colour (its ``color`` and ``strength`` beside
+# it): the light the backend's bent rays start seeing through glass.
+WORLD_UNIFORM = "uniform colour"
 GEOMETRY_NAME = "scene_geometry.ply"
 NGP_NAME = "transforms.json"
 COLMAP_DIR = "colmap"

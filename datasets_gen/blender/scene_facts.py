@@ -13,6 +13,8 @@ from typing import Any, Iterable, Optional
 
 import bpy
 
+from nerf_contract.dataset_layout import WORLD_UNIFORM
+
 from ..core.materials import choose_output_node
 from ..core.scene_checks import MissingFile
 
@@ -183,7 +185,7 @@ def describe_world(scene: "bpy.types.Scene") -> dict:
         return {"name": None, "kind": "none (black)"}
     nodes = _shader_nodes(world, "OUTPUT_WORLD", ("Surface", "Volume"))
     if nodes is None:
-        return {"name": world.name, "kind": "uniform colour", "color": [float(c) for c in world.color]}
+        return {"name": world.name, "kind": WORLD_UNIFORM, "color": [float(c) for c in world.color]}
     types = sorted({node["type"] for node in nodes})
     record: dict[str, Any] = {"name": world.name, "node_types": types}
     images = []
@@ -197,7 +199,7 @@ def describe_world(scene: "bpy.types.Scene") -> dict:
     elif "TEX_SKY" in types:
         record["kind"] = "sky texture"
     elif types == ["BACKGROUND"] and not any(socket["linked"] for node in nodes for socket in node["inputs"].values()):
-        record["kind"] = "uniform colour"
+        record["kind"] = WORLD_UNIFORM
         background = next(node for node in tree.nodes if node.type == "BACKGROUND")
         record["color"] = [float(c) for c in background.inputs["Color"].default_value]
         record["strength"] = float(background.inputs["Strength"].default_value)

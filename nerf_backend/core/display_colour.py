@@ -4,6 +4,8 @@ of the linear light Cycles gathered, clipped to [0, 1]."""
 
 from __future__ import annotations
 
+from nerf_contract.dataset_layout import WORLD_UNIFORM
+
 
 def srgb_encoded(linear: float) -> float:
     """The sRGB transfer of one linear value, clipped to [0, 1] first.
@@ -29,7 +31,7 @@ def uniform_world_light(world: object) -> tuple[float, float, float] | None:
         >>> uniform_world_light({"kind": "sky texture"}) is None
         True
     """
-    if not isinstance(world, dict) or world.get("kind") != "uniform colour":
+    if not isinstance(world, dict) or world.get("kind") != WORLD_UNIFORM:
         return None
     colour, strength = world.get("color"), world.get("strength", 1.0)
     numbers = (*colour[:3], strength) if isinstance(colour, list) and len(colour) >= 3 else ()

@@ -179,30 +179,32 @@ class OccupancyPrior:
 
     def _glass_faces(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The true surface's vertices and faces, and each face's glass material (its index in
-        the profile's materials; -1 where it is not glass); None without glass or geometry."""
-        if not self.glass_materials or self.geometry is None:
-            return None
-        # The plan, the model and its emptied cells each ask: the file is read once per question.
-        key = (self.geometry, tuple(sorted(self.glass_materials.items())), self.all_transmissive_glass)
-        cached = getattr(self, "_glass_cache", None)
-        if cached is not None and cached[0] == key:
-            return cached[1]
-        found = self._read_glass_faces()
-        self._glass_cache = (key, found)
-        return found
+        the profile's materials; -1 where it is not glass, or in a thin-walled body); None
+        without glass or geometry."""
+        return self._glass_record()[0]
 
     def thin_glass(self) -> dict[int, list[float]]:
         """The bodies of smooth glass left to the field because they are thin-walled: by their
         material's index in the profile's materials, each body's ``wall_share`` (under
         GLASS_MIN_WALL_SHARE)."""
-        self._glass_faces()
-        return dict(getattr(self, "_thin_glass", {}))
+        return dict(self._glass_record()[1])
 
-    def _read_glass_faces(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        self._thin_glass: dict[int, list[float]] = {}
+    def _glass_record(self) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray] | None, dict[int, list[float]]]:
+        """``_glass_faces`` and ``thin_glass``, read together once per question."""
+        if not self.glass_materials or self.geometry is None:
+            return None, {}
+        # The plan, the model and its emptied cells each ask: the file is read once per question.
+        key = (self.geometry, tuple(sorted(self.glass_materials.items())), self.all_transmissive_glass)
+        cached = getattr(self, "_glass_cache", None)
+        if cached is None or cached[0] != key:
+            cached = (key, self._read_glass_faces())
+            self._glass_cache = cached
+        return cached[1]
+
+    def _read_glass_faces(self) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray] | None, dict[int, list[float]]]:
         vertices, faces = read_ply(self.geometry)  # type: ignore[arg-type]
         if not len(faces):
-            return None
+            return None, {}
         materials = read_face_materials(self.geometry)  # type: ignore[arg-type]
         if materials is not None:
             material = np.where(np.isin(materials, list(self.glass_materials)), materials, -1)
@@ -211,14 +213,15 @@ class OccupancyPrior:
             kinds = set(self.glass_materials.values())
             if self.regions is not None and self.all_transmissive_glass and len(kinds) == 1:
                 material[self._in_transmissive_cells(vertices[faces])] = min(self.glass_materials)
+        thin: dict[int, list[float]] = {}
         for kind in np.unique(material[material >= 0]).tolist():
             chosen = np.flatnonzero(material == kind)
             for body in mesh_bodies(vertices, faces[chosen]):
                 share = wall_share(vertices[faces[chosen[body]]])
                 if share < GLASS_MIN_WALL_SHARE:  # a shell of glass: left to the field, straight
                     material[chosen[body]] = -1
-                    self._thin_glass.setdefault(kind, []).append(share)
-        return (vertices, faces, material) if (material >= 0).any() else None
+                    thin.setdefault(kind, []).append(share)
+        return ((vertices, faces, material) if (material >= 0).any() else None), thin
 
     def _in_transmissive_cells(self, corners: np.ndarray) -> np.ndarray:
         """``[T]`` whether each triangle's corners and centre all lie in transmissive cells."""
