@@ -26,7 +26,8 @@ import tempfile
 from pathlib import Path
 
 SOURCES = Path(__file__).resolve().parent
-FLAGS = ("-O3", "-std=c99", "-shared", "-fPIC", "-pthread", "-fno-math-errno")
+# POSIX 2008 for clock_gettime (the worker pool's spin, grid_common.h) under strict C99.
+FLAGS = ("-O3", "-std=c99", "-D_POSIX_C_SOURCE=200809L", "-shared", "-fPIC", "-pthread", "-fno-math-errno")
 # Code for the running CPU (AVX-512 where it has it, AVX2 where not: this project's machines
 # differ), keyed by the CPU's identity so a cache shared between machines never runs code the
 # CPU lacks; a compiler that refuses the flag builds portable code. Tests also build for older
