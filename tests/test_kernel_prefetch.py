@@ -22,7 +22,7 @@ from nerf_backend.kernels.build import FLAGS, NATIVE_TARGET, SOURCES, c_compiler
 # The worker functions of vm_grid.c (and the headers it includes) that call prefetch_rows or
 # density_prefetch: forward_work and backward_work (vm_grid.c), lit_grids_backward_work
 # (lit_pass.h), colour_work (colour_network.h), train_march_work (train_march.h).
-ASKING_AHEAD = ("forward_work", "backward_work", "lit_grids_backward_work", "colour_work", "train_march_work")
+ASKING_AHEAD = ("forward_work", "backward_work", "lit_forward_work", "lit_grids_backward_work", "colour_work", "train_march_work")
 PREFETCH = re.compile(r"^\s+(prefetch\w*|prfm)\b", re.MULTILINE)  # x86's prefetcht0/prefetchw, ARM's prfm
 LABEL = re.compile(r"^_?([A-Za-z_]\w*)(?:\.\w+)*:", re.MULTILINE)  # a function and its .cold/.part pieces
 

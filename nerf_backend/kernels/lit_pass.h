@@ -65,12 +65,21 @@ static RaySamples lit_samples_of(const LitPass *p) {
     return s;
 }
 
+/* The appearance rows of the coloured sample this many samples on, asked of memory before it
+ * is reached: the forward waited on them (lego's ten-minute model, two builds chosen at random a
+ * step, 600 steps: the call 2.62 -> 1.72 ms, 0.655x, twice; 4 and 16 ahead within 1 % of 8). */
+#define LIT_FORWARD_AHEAD 8
+
 static void *lit_forward_work(void *arg) {
     const LitRays *w = (const LitRays *)arg;
     LitPass *p = w->p;
     const RaySamples samples = lit_samples_of(p);
+    const int64_t last = p->starts[w->end_ray];
     for (int64_t r = w->first_ray; r < w->end_ray; ++r) {
         for (int64_t i = p->starts[r]; i < p->starts[r + 1]; ++i) {
+            const int64_t ahead = i + LIT_FORWARD_AHEAD;
+            if (LIT_FORWARD_AHEAD && ahead < last && p->feature_row[ahead] >= 0)
+                for (int c = 0; c < 3; ++c) prefetch_rows(&p->appearance[c], p->record + ahead * RECORD_WIDTH + 3, 0);
             const float *rec = p->record + i * RECORD_WIDTH;
             p->sigma[i] = p->density_scale * softplus_of(rec[2] + p->density_shift);
             const int64_t row = p->feature_row[i];
