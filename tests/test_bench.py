@@ -270,6 +270,10 @@ def test_bench_step_profiles_a_marched_preset_by_stage(tiny_demo_dataset, tmp_pa
     assert 0 < render["shade"]["items"] <= report["image_size"][0] * report["image_size"][1]
     deferred = json.loads((out / "runs" / "auto" / "config.json").read_text())["config"]["grid"]["deferred_colour"]
     assert (render["shade"]["reference_seconds"] is not None) == deferred
+    # Training's "composite" shades the rays with deferred colour: its network's FLOPs bound it.
+    assert (stages["composite"]["reference_seconds"] is not None) == deferred
+    if deferred:
+        assert stages["composite"]["times_reference"] > 0.8
     assert "Through the compiled march" in result.stdout
     # Timed by default over whole periods of the occupancy refresh, at least 50 steps: each
     # refresh's cost is in the step as often as training pays it.

@@ -8,8 +8,9 @@ rates, so "× reference" is about 1 or more and says how far the stage is from w
 allows. (Not quite a bound for the row-sparse optimiser on two threads: it visits its rows in
 address order, prefetched, faster than the random lines its reference counts: 0.9× on lego at
 800×800.) The work is counted three ways, and the reference is the largest of the three times:
-- FLOPs (from the field's own ``sample_cost``: interpolation and networks) at the rate of a
-  large float32 matrix product;
+- FLOPs (from the field's own ``sample_cost``: interpolation and networks; with deferred
+  colour, the network once a shaded ray in training's "composite" and twice that in its
+  backward) at the rate of a large float32 matrix product;
 - bytes moved at the copy bandwidth: the march's 10 floats a sample (a position, a length, a
   distance and an occupancy written and read), the optimiser's 7 floats a value it updates
   (Adam: p, g, m, v in; p, m, v out; a row-sparse Adam updates only the rows a step touched);
@@ -51,7 +52,7 @@ from ..models.marched import MarchedModel
 from ..models.registry import model_class
 from ..training.trainer import TrainOptions, train
 from ..model_components.compiled_march import COMPILED_TRAINING_MARCH
-from ..model_components.marcher import COMPILED_LIT_PASS
+from ..model_components.marcher import COMPILED_LIT_PASS, SHADED_RAYS
 from .hardware import LINE_FLOATS, measure_hardware
 
 # Training stages in the order a step runs them (trainer._step and marcher.render_marched).
@@ -271,6 +272,8 @@ def _training_references(hardware: dict, items: dict, costs: dict, backward_work
     density_flops = items["density pass"] * costs["density"].flops
     # The compiled training march does the density pass inside its own pass: its reads count there.
     compiled_training = bool(items.get(COMPILED_TRAINING_MARCH))
+    # Deferred colour: the network once a shaded ray in "composite", twice that backward.
+    shade_flops = items.get(SHADED_RAYS, 0) * costs["shade"].flops if "shade" in costs else 0.0
     return {
         "march": _reference(hardware, bytes_moved=items["march"] * MARCH_BYTES_PER_SAMPLE,
                             flops=density_flops if compiled_training else 0.0),
@@ -278,7 +281,9 @@ def _training_references(hardware: dict, items: dict, costs: dict, backward_work
         "field": _reference(hardware, flops=forward_work, lines=grid_lines),
         # Backward: the forward's FLOPs twice over, the rows read again and their gradients
         # written; a voxel grid's blend only writes its gradients (BACKWARD_WORK).
-        "backward": _reference(hardware, flops=backward_work * field_work, lines=backward_work * grid_lines),
+        "composite": _reference(hardware, flops=shade_flops) if shade_flops else None,
+        "backward": _reference(hardware, flops=backward_work * field_work + 2 * shade_flops,
+                               lines=backward_work * grid_lines),
         "optimiser": _reference(hardware, bytes_moved=items["optimiser"] * ADAM_BYTES_PER_VALUE,
                                 lines=ADAM_ARRAYS * grid_lines),
     }

@@ -40,7 +40,7 @@ from .render_output import RenderOutput
 from .samplers import interval_midpoints
 from .compiled_composite import compiled_composite_features
 from .volume_rendering import (accumulate, composite_features_packed, composite_rgb, expected_depth, render_weights,
-                               render_weights_packed, shade_rays, sum_per_ray)
+                               render_weights_packed, shade_rays, shaded_ray_count, sum_per_ray)
 
 # A ray whose transmittance has fallen below this is opaque: what it would still add is under
 # 1e-4 of a pixel, so inference stops it and training evaluates no colour past that point.
@@ -85,6 +85,9 @@ TRAIN_RELATIVE_WEIGHT = 1e-2
 # bench-step's count of the rays whose field pass was a field's lit pass (``_render_lit_pass``):
 # the density was read by the march, not again in the "field" stage.
 COMPILED_LIT_PASS = "compiled lit pass"
+# bench-step's count of the rays deferred colour shaded in training (the network's work in the
+# "composite" stage).
+SHADED_RAYS = "shaded rays"
 
 
 def march_edges(t_near: Tensor, t_far: Tensor, step: float, offset: Tensor, first: int, count: int) -> Tensor:
@@ -249,8 +252,9 @@ def _render_lit(origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tens
             opacity, depth, coloured_weight, accumulated = composited
             rgb = shade_rays(accumulated, coloured_weight, opacity, directions, shade_fn)
         rgb = rgb + (1.0 - opacity)[:, None] * background
-        return RenderOutput(rgb=rgb, depth=depth, opacity=opacity, weights=None, t_edges=None,
-                            field_samples=lit.numel())
+    if shade_fn is not None:
+        count(SHADED_RAYS, lambda: shaded_ray_count(coloured_weight))
+    return RenderOutput(rgb=rgb, depth=depth, opacity=opacity, weights=None, t_edges=None, field_samples=lit.numel())
 
 
 def _render_lit_pass(origins: Tensor, directions: Tensor, t_near: Tensor, t_far: Tensor, lit_fn: LitSamplesFn,
@@ -271,8 +275,8 @@ def _render_lit_pass(origins: Tensor, directions: Tensor, t_near: Tensor, t_far:
     with stage("composite", items=lit.numel()):
         rgb = shade_rays(accumulated, coloured_weight, opacity, directions, shade_fn)
         rgb = rgb + (1.0 - opacity)[:, None] * background
-        return RenderOutput(rgb=rgb, depth=depth, opacity=opacity, weights=None, t_edges=None,
-                            field_samples=lit.numel())
+    count(SHADED_RAYS, lambda: shaded_ray_count(coloured_weight))
+    return RenderOutput(rgb=rgb, depth=depth, opacity=opacity, weights=None, t_edges=None, field_samples=lit.numel())
 
 
 def _packed_colours(coloured: Tensor, colours: Tensor, weights: Tensor, ray: Tensor, rays: int) -> Tensor:

@@ -115,7 +115,7 @@ def shade_rays(accumulated: Tensor, coloured_weight: Tensor, weight: Tensor, dir
         ...            lambda mean, d: mean.sum(dim=1, keepdim=True).expand(-1, 3)).tolist()
         [[1.125, 1.125, 1.125], [0.0, 0.0, 0.0]]
     """
-    shaded = (coloured_weight > MIN_SHADED_WEIGHT).nonzero().squeeze(1)
+    shaded = (coloured_weight > MIN_SHADED_WEIGHT).nonzero().squeeze(1)  # as shaded_ray_count
     if shaded.numel() == 0:  # no values at all, perhaps not even their width
         return accumulated.new_zeros((accumulated.shape[0], 3))
     whole = getattr(shade_fn, "shade_rays", None)
@@ -125,6 +125,16 @@ def shade_rays(accumulated: Tensor, coloured_weight: Tensor, weight: Tensor, dir
     colour = mean if shade_fn is None else shade_fn(mean, directions.index_select(0, shaded))
     colour = colour * weight.index_select(0, shaded)[:, None].to(colour.dtype)
     return colour.new_zeros((accumulated.shape[0], 3)).index_put((shaded,), colour)
+
+
+def shaded_ray_count(coloured_weight: Tensor) -> int:
+    """How many rays ``shade_rays`` runs the shading on: those with coloured weight.
+
+    Example:
+        >>> shaded_ray_count(torch.tensor([0.5, 0.0, 1e-3]))
+        2
+    """
+    return int((coloured_weight > MIN_SHADED_WEIGHT).sum())
 
 
 def composite_features_packed(density: Tensor, deltas: Tensor, t_mid: Tensor, ray: Tensor, coloured: Tensor,
