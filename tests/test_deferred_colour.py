@@ -22,6 +22,7 @@ from nerf_backend.core.scene_bounds import SceneBounds
 from nerf_backend.data.dataset import load_split
 from nerf_backend.field_components.compiled_colour import CompiledRayFeatures
 from nerf_backend.field_components.compiled_grid import channel_rows
+from nerf_backend.fields import grid_field as grid_field_module
 from nerf_backend.fields.grid_field import GridField, GridFieldConfig
 from nerf_backend.kernels.build import load_kernel
 from nerf_backend.metrics.image_metrics import psnr
@@ -130,6 +131,28 @@ def test_the_training_march_is_the_shaded_mean_of_the_features_composited_by_han
     for name, parameter in field.named_parameters():
         assert parameter.grad is not None and torch.isfinite(parameter.grad).all(), name
         assert float(parameter.grad.abs().max()) > 0, name
+
+
+@pytest.mark.parametrize("deferred", [False, True])
+def test_read_by_pytorch_the_field_gives_what_its_compiled_read_gives(deferred, monkeypatch):
+    """On CUDA, MPS or without a C compiler PyTorch reads the grids (``read_grids`` None): the
+    field's samples still carry its appearance features with deferred colour (a colour there
+    failed lego's first training step on an H200: 3 values where the shading takes 72), and
+    the training march's image is the compiled read's."""
+    field = _field(deferred=deferred, wall=False, seed=2)
+    generator = torch.Generator().manual_seed(4)
+    x = torch.rand(400, 3, generator=generator) * 2 - 1
+    directions = torch.nn.functional.normalize(torch.randn(400, 3, generator=generator), dim=-1)
+    rays = _rays(seed=3)
+    with torch.no_grad():
+        compiled, compiled_march = field(x, directions), _training_march(field, rays, packed=False)
+        monkeypatch.setattr(grid_field_module, "read_grids", lambda grids, points: None)
+        plain, plain_march = field(x, directions), _training_march(field, rays, packed=False)
+    width = field.appearance_grid.out_dims if deferred else 3
+    assert plain[1].shape == compiled[1].shape == (400, width)
+    for a, b in zip(plain, compiled):
+        assert torch.allclose(a, b, atol=1e-5, rtol=1e-5)
+    assert torch.allclose(plain_march.rgb, compiled_march.rgb, atol=1e-5)
 
 
 def test_a_faint_ray_is_shaded_black_and_every_gradient_is_finite():

@@ -149,10 +149,11 @@ class GridField(VertexOccupancy, GridAppearance, MarchableField):
         normalised = self.normalise(x)
         if coloured is None:
             features = read_grids([self.density_grid, self.appearance_grid], normalised)
-            if features is None:
-                return super().forward(x, directions)
-            density_features, appearance_features = features.split(
-                [self.density_grid.out_dims, self.appearance_grid.out_dims], dim=1)
+            if features is None:  # CUDA, MPS, no C compiler: PyTorch reads each grid
+                density_features, appearance_features = self.density_grid(normalised), self.appearance_grid(normalised)
+            else:
+                density_features, appearance_features = features.split(
+                    [self.density_grid.out_dims, self.appearance_grid.out_dims], dim=1)
             return (self.density_from_features(density_features.sum(dim=-1)),
                     self.sample_appearance(appearance_features, directions, x))
         density = self.density_from_features(self.density_grid(normalised).sum(dim=-1))
