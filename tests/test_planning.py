@@ -4,6 +4,7 @@ the whole plan in config.json, a resumed run's plan kept, and the trainer writin
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -16,10 +17,10 @@ from nerf_backend.data.dataset import load_scene_bounds
 from nerf_backend.data.run_folder import RunFolder
 from nerf_backend.model_components.ray_bounds import BOX_PADDING, PROTOCOL_BOX
 from nerf_backend.models.registry import model_class
-from nerf_backend.planning.facts import RunRequest, gather_facts
+from nerf_backend.planning.facts import RunRequest, gather_facts, starting_settings
 from nerf_backend.planning.footprint import MAX_RESOLUTION, MIN_RESOLUTION, pixel_footprint
 from nerf_backend.planning.plan import plan_run
-from nerf_backend.planning.rules import LAST_GROWTH_MIN_STEPS, RAYS_PER_STEP, RULES
+from nerf_backend.planning.rules import GPU_RAYS_PER_STEP, LAST_GROWTH_MIN_STEPS, RAYS_PER_STEP, RULES
 from nerf_backend.training.trainer import TrainOptions, train
 
 BUDGET = 120.0
@@ -121,6 +122,23 @@ def test_the_users_set_wins_and_the_plan_says_what_the_rule_would_have_chosen(ti
     assert (plan.config.rays_per_batch, plan.config.model) == (512, "plenoxels")
     assert plan.decisions["model"]["reason"].startswith("set with --set model; the rule would choose 'grid'")
     assert "plenoxels.resolution" not in plan.decisions and "initial_resolution" in plan.decisions  # its own grid's
+
+
+def test_auto_takes_more_rays_a_step_on_cuda_and_the_users_count_still_wins(tiny_demo_dataset, tmp_path):
+    """A GPU's step is bound by its kernel launches: 8 192 rays on CUDA (lego on an H200:
+    docs/benchmarks_lego.md), the CPU's 2 048 elsewhere; the user's --set wins on either."""
+    facts, on_cpu = _plan(tiny_demo_dataset, tmp_path, preset="auto")
+
+    def on_cuda(*overrides: str):
+        request = RunRequest(device="cuda", preset="auto", overrides=overrides)
+        return plan_run(dataclasses.replace(facts, request=request, start=starting_settings(request, None),
+                                            devices=("cuda", "cpu")), RULES)
+
+    plan = on_cuda()
+    assert on_cpu.config.rays_per_batch == RAYS_PER_STEP == 2048
+    assert plan.device.type == "cuda" and plan.config.rays_per_batch == GPU_RAYS_PER_STEP == 8192
+    assert plan.decisions["rays"]["reason"].startswith("on CUDA") and "H200" in plan.decisions["rays"]["reason"]
+    assert on_cuda("rays_per_batch=1024").config.rays_per_batch == 1024
 
 
 @pytest.mark.parametrize("minutes", [10, 29.9, 30, 60])
