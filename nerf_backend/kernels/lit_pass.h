@@ -126,8 +126,10 @@ typedef struct {
 /* The backward adds into rows (values read, gradients read and written) and waits on them more
  * than the forward, which reads: asked 12 samples ahead, not vm_grid.c's 6 (lego's ten-minute
  * model continued for 4 000 steps, the builds chosen at random a step: 0.964× and 0.970× the
- * backward's time in two runs, the forward's within 1 %; 9 and 16 ahead 0.98×). */
+ * backward's time in two runs, the forward's within 1 %; 9 and 16 ahead 0.98×). Less than
+ * vm_grid.c's CORNER_RING. */
 #define LIT_BACKWARD_AHEAD 12
+typedef char lit_backward_ahead_within_the_ring[LIT_BACKWARD_AHEAD < CORNER_RING ? 1 : -1];
 
 static void *lit_grids_backward_work(void *arg) {
     const LitGrids *w = (const LitGrids *)arg;
@@ -135,25 +137,13 @@ static void *lit_grids_backward_work(void *arg) {
     for (int32_t j = 0; j < w->owned_count; ++j) {
         const int32_t index = w->owned[j];
         if (index < 3) {
-            const Component *m = &p->density[index];
-            for (int64_t i = 0; i < p->samples; ++i) {
-                if (LIT_BACKWARD_AHEAD && i + LIT_BACKWARD_AHEAD < p->samples) {
-                    prefetch_rows(m, p->record + (i + LIT_BACKWARD_AHEAD) * RECORD_WIDTH + 3, 0);
-                    prefetch_rows(m, p->record + (i + LIT_BACKWARD_AHEAD) * RECORD_WIDTH + 3, 1);
-                }
-                backward_sample(m, p->record + i * RECORD_WIDTH + 3, p->grad_sum + i, 1);
-            }
+            backward_samples(&p->density[index], p->record + 3, RECORD_WIDTH, p->grad_sum, 1, p->samples, 1,
+                             LIT_BACKWARD_AHEAD);
         } else {
-            const Component *m = &p->appearance[index - 3];
             int64_t column = 0;
             for (int c = 0; c < index - 3; ++c) column += p->appearance[c].channels;
-            for (int64_t i = 0; i < p->coloured; ++i) {
-                if (LIT_BACKWARD_AHEAD && i + LIT_BACKWARD_AHEAD < p->coloured) {
-                    prefetch_rows(m, p->coloured_points + 3 * (i + LIT_BACKWARD_AHEAD), 0);
-                    prefetch_rows(m, p->coloured_points + 3 * (i + LIT_BACKWARD_AHEAD), 1);
-                }
-                backward_sample(m, p->coloured_points + 3 * i, p->grad_features + i * p->width + column, 0);
-            }
+            backward_samples(&p->appearance[index - 3], p->coloured_points, 3, p->grad_features + column, p->width,
+                             p->coloured, 0, LIT_BACKWARD_AHEAD);
         }
     }
     return NULL;

@@ -97,8 +97,7 @@ static inline void add_into(float *p, vec v) { store(p, load(p) + v); }
 
 /* A sample's gradient into a component's rows: the incoming gradient `g` a row of its channels
  * (`broadcast` 0), or one value for every channel (1: the lit pass's density, a sum of them). */
-static inline void backward_sample(const Component *m, const float *x, const float *g, int broadcast) {
-    const SampleCorners s = corners_of(m, x);
+static inline void backward_at(const Component *m, SampleCorners s, const float *g, int broadcast) {
     const int32_t C = m->channels;
     const vec w00 = splat(s.a.low_weight * s.b.low_weight), w01 = splat(s.a.low_weight * s.b.high_weight);
     const vec w10 = splat(s.a.high_weight * s.b.low_weight), w11 = splat(s.a.high_weight * s.b.high_weight);
@@ -129,6 +128,10 @@ static inline void backward_sample(const Component *m, const float *x, const flo
     if (m->line_touched) m->line_touched[c0] = m->line_touched[c1] = 1;
 }
 
+static inline void backward_sample(const Component *m, const float *x, const float *g, int broadcast) {
+    backward_at(m, corners_of(m, x), g, broadcast);
+}
+
 typedef struct {
     const Component *components;
     int32_t count;
@@ -146,8 +149,7 @@ typedef struct {
 /* Always inlined: a function of prefetches alone is side-effect free to GCC ("looping pure"),
  * and GCC 12 at -O1 and above dropped every call to it, so none of these prefetches reached the
  * machine code (tests/test_kernel_prefetch.py checks that they do). */
-static inline __attribute__((always_inline)) void prefetch_rows(const Component *m, const float *x, int write) {
-    const SampleCorners s = corners_of(m, x);
+static inline __attribute__((always_inline)) void prefetch_rows_at(const Component *m, SampleCorners s, int write) {
     const int64_t C = m->channels;
     const float *plane = write ? m->plane_grad : m->plane, *line = write ? m->line_grad : m->line;
     const float *rows[4] = {plane + s.row * C, plane + (s.row + m->nb) * C, line + (int64_t)s.c.lower * C, NULL};
@@ -156,6 +158,30 @@ static inline __attribute__((always_inline)) void prefetch_rows(const Component 
             if (write) __builtin_prefetch(rows[i] + offset, 1, 3);
             else __builtin_prefetch(rows[i] + offset, 0, 3);
         }
+}
+
+static inline __attribute__((always_inline)) void prefetch_rows(const Component *m, const float *x, int write) {
+    prefetch_rows_at(m, corners_of(m, x), write);
+}
+
+/* A component's backward over n samples (points x + i * x_stride, gradients g + i * g_stride),
+ * the rows of the sample `ahead` on asked of memory (values and gradients), each sample's
+ * corners found once for both (a ring of the next ones) where they were found three times. */
+#define CORNER_RING 16
+static inline __attribute__((always_inline)) void backward_samples(const Component *m, const float *x,
+                                                                   int64_t x_stride, const float *g, int64_t g_stride,
+                                                                   int64_t n, int broadcast, int ahead) {
+    SampleCorners ring[CORNER_RING];
+    for (int64_t i = 0; i < n && i < ahead; ++i) ring[i % CORNER_RING] = corners_of(m, x + i * x_stride);
+    for (int64_t i = 0; i < n; ++i) {
+        if (i + ahead < n) {
+            const SampleCorners s = corners_of(m, x + (i + ahead) * x_stride);
+            ring[(i + ahead) % CORNER_RING] = s;
+            prefetch_rows_at(m, s, 0);
+            prefetch_rows_at(m, s, 1);
+        }
+        backward_at(m, ring[i % CORNER_RING], g + i * g_stride, broadcast);
+    }
 }
 
 static void *forward_work(void *arg) {
