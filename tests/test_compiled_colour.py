@@ -146,7 +146,7 @@ def _library_for(level: str) -> ctypes.CDLL:
         pytest.skip(f"this CPU cannot run code for {level}")
     library, why_not = load_kernel("vm_grid", level)
     assert library is not None, why_not
-    for name in ("colour_samples", "shade_rays", "shade_training_forward", "shade_training_backward"):
+    for name in ("colour_samples", "shade_rays", "shade_rays_training_forward", "shade_rays_training_backward"):
         getattr(library, name).restype = ctypes.c_int
     library.shade_training_gradient_floats.restype = ctypes.c_int64
     return library
@@ -305,6 +305,43 @@ def test_the_compiled_training_shading_equals_autograds(bands, rays, threads, mo
         assert bool(((actual - reference).abs() <= bound).all()), (name, float((actual - reference).abs().max()))
     if rays == 1000:
         assert float(expected["colour_mlp.0.weight"].abs().max()) > 1e-2  # gradients that say something
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_training_shades_whole_rays_in_one_node_with_autograds_colour_and_gradients(threads, monkeypatch):
+    """``shade_rays`` in training through the compiled pass's own hook: one autograd node (the
+    gathers, the division, the network, the weighting and the scatter), its image and the
+    gradients of the features, both weights and every parameter those of PyTorch's operations;
+    rays without coloured weight stay black and get no gradient."""
+    from nerf_backend.model_components.volume_rendering import shade_rays
+    monkeypatch.setattr(torch, "get_num_threads", lambda: threads)
+    field = _field(deferred_colour=True).train()
+    compiled = compiled_colour.compiled_shade_training(field)
+    composited = _composited(field, 1500, seed=8)
+    upstream = torch.randn(1500, 3, generator=torch.Generator().manual_seed(9))
+
+    def run(shade):
+        field.zero_grad(set_to_none=True)
+        inputs = [t.clone().requires_grad_(True) for t in composited[:3]]
+        rgb = shade_rays(*inputs, composited[3], shade)
+        (rgb * upstream).sum().backward()
+        named = {name: p.grad.clone() for name, p in field.named_parameters() if p.grad is not None}
+        return rgb, [t.grad for t in inputs], named
+
+    rgb, grads, named = run(compiled)
+    expected_rgb, expected_grads, expected_named = run(_pytorch_shade(field))
+    assert type(rgb.grad_fn).__name__ == "_ShadeRaysTrainingFunctionBackward"
+    unshaded = composited[1] <= 1e-12
+    assert 300 < int(unshaded.sum()) < 700 and not rgb[unshaded].any() and not grads[0][unshaded].any()
+    assert float((rgb - expected_rgb).detach().abs().max()) <= 5e-6
+    assert set(named) == set(expected_named) and len(named) == 7
+    pairs = zip(["features", "coloured weight", "weight"] + sorted(named), grads + [named[n] for n in sorted(named)],
+                expected_grads + [expected_named[n] for n in sorted(named)])
+    for name, actual, reference in pairs:
+        assert actual.shape == reference.shape, name
+        bound = 1e-5 * float(reference.abs().max()) + 2e-5 * reference.abs()
+        assert bool(((actual - reference).abs() <= bound).all()), (name, float((actual - reference).abs().max()))
+        assert float(reference.abs().max()) > 1e-3, name  # gradients that say something
 
 
 def test_the_grid_field_trains_its_shading_through_the_compiled_pass_outside_autocast():

@@ -273,48 +273,59 @@ def _padded(n: int) -> int:
     return -(-n // _VECTOR) * _VECTOR
 
 
-class _ShadeTrainingFunction(torch.autograd.Function):
-    """The network's forward and backward in one compiled call each (``CompiledShadeTraining``)."""
+class _ShadeRaysTrainingFunction(torch.autograd.Function):
+    """``volume_rendering.shade_rays`` in training as one autograd node: the rays' mean features
+    gathered, the network, the colours weighted and scattered, forward and backward each one
+    compiled call (``CompiledShadeTraining.shade_rays``)."""
 
     @staticmethod
-    def forward(ctx, mean, directions, basis, w1, b1, w2, b2, w3, b3, shader):  # noqa: D102 (autograd's)
+    def forward(ctx, accumulated, coloured_weight, weight, directions, shaded, basis, w1, b1, w2, b2, w3, b3,
+                shader):  # noqa: D102 (autograd's)
         network, kept = shader.network(basis, w1, b1, w2, b2, w3, b3)
-        mean = mean.float().contiguous()
-        directions = directions.float().contiguous()
-        rays, inputs = mean.shape[0], network.apad + shader.encoding
-        hidden1, hidden2 = mean.new_empty((rays, COMPILED_WIDTH)), mean.new_empty((rays, COMPILED_WIDTH))
-        x1, colour = mean.new_empty((rays, inputs)), mean.new_empty((rays, 3))
-        if rays:
-            shader.call("shade_training_forward", ctypes.byref(network), mean, directions, ctypes.c_int64(rays),
-                        x1, hidden1, hidden2, colour, ctypes.c_int64(torch.get_num_threads()))
-        ctx.save_for_backward(mean, x1, hidden1, hidden2, colour)
-        ctx.network, ctx.kept, ctx.shader = network, kept, shader
-        return colour
+        accumulated, coloured_weight, weight, directions = (
+            t.detach().float().contiguous() for t in (accumulated, coloured_weight, weight, directions))
+        shaded = shaded.to(torch.int64).contiguous()
+        count, inputs = shaded.numel(), network.apad + shader.encoding
+        mean, ray_directions = accumulated.new_empty((count, network.features)), accumulated.new_empty((count, 3))
+        hidden1, hidden2 = accumulated.new_empty((count, COMPILED_WIDTH)), accumulated.new_empty((count, COMPILED_WIDTH))
+        x1, colour = accumulated.new_empty((count, inputs)), accumulated.new_empty((count, 3))
+        rgb = accumulated.new_zeros((accumulated.shape[0], 3))
+        if count:
+            shader.call("shade_rays_training_forward", ctypes.byref(network), accumulated, coloured_weight, weight,
+                        directions, shaded, ctypes.c_int64(count), mean, ray_directions, x1, hidden1, hidden2, colour,
+                        rgb, ctypes.c_int64(torch.get_num_threads()))
+        ctx.save_for_backward(coloured_weight, weight, shaded, mean, x1, hidden1, hidden2, colour)
+        ctx.network, ctx.kept, ctx.shader, ctx.rays = network, kept, shader, accumulated.shape[0]
+        return rgb
 
     @staticmethod
-    def backward(ctx, grad_colour):  # noqa: D102 (autograd's)
-        mean, x1, hidden1, hidden2, colour = ctx.saved_tensors
+    def backward(ctx, grad_rgb):  # noqa: D102 (autograd's)
+        coloured_weight, weight, shaded, mean, x1, hidden1, hidden2, colour = ctx.saved_tensors
         network, shader = ctx.network, ctx.shader
-        rays, features, apad = mean.shape[0], network.features, network.apad
+        count, features, apad = shaded.numel(), network.features, network.apad
         threads = torch.get_num_threads()
         size = int(shader.library.shade_training_gradient_floats(ctypes.byref(network)))
         sums = mean.new_zeros(size)
-        grad_mean = mean.new_empty((rays, network.fpad))  # the kernel writes every row
-        if rays:
+        grad_accumulated, grad_coloured_weight = mean.new_zeros((ctx.rays, features)), mean.new_zeros(ctx.rays)
+        grad_weight = mean.new_zeros(ctx.rays)
+        if count:
+            grad_colour, grad_mean = mean.new_empty((count, 3)), mean.new_empty((count, network.fpad))
             scratch = mean.new_empty(max(threads - 1, 1) * size)
-            shader.call("shade_training_backward", ctypes.byref(network), mean, x1, hidden1, hidden2, colour,
-                        grad_colour.float().contiguous(), ctypes.c_int64(rays), grad_mean, sums, scratch,
+            shader.call("shade_rays_training_backward", ctypes.byref(network), coloured_weight, weight, shaded,
+                        ctypes.c_int64(count), mean, x1, hidden1, hidden2, colour, grad_rgb.float().contiguous(),
+                        grad_colour, grad_mean, sums, scratch, grad_accumulated, grad_coloured_weight, grad_weight,
                         ctypes.c_int64(threads))
         inputs, hidden, appearance = apad + shader.encoding, COMPILED_WIDTH, shader.appearance
         parts, at = [], 0
-        for count in (inputs * hidden, hidden, hidden * hidden, hidden, 3 * hidden, _VECTOR, features * apad):
-            parts.append(sums[at:at + count])
-            at += count
+        for size in (inputs * hidden, hidden, hidden * hidden, hidden, 3 * hidden, _VECTOR, features * apad):
+            parts.append(sums[at:at + size])
+            at += size
         g_w1_t, g_b1, g_w2_t, g_b2, g_w3, g_b3, g_basis_t = parts
         g_w1_t = g_w1_t.view(inputs, hidden)
         g_w1 = torch.cat([g_w1_t[:appearance], g_w1_t[apad:]]).t()
-        return (grad_mean[:, :features], None, g_basis_t.view(features, apad)[:, :appearance].t(), g_w1, g_b1,
-                g_w2_t.view(hidden, hidden).t(), g_b2, g_w3.view(3, hidden), g_b3[:3], None)
+        return (grad_accumulated, grad_coloured_weight, grad_weight, None, None,
+                g_basis_t.view(features, apad)[:, :appearance].t(), g_w1, g_b1, g_w2_t.view(hidden, hidden).t(), g_b2,
+                g_w3.view(3, hidden), g_b3[:3], None)
 
 
 class CompiledShadeTraining:
@@ -330,10 +341,22 @@ class CompiledShadeTraining:
         self._bands = field.direction_encoding.num_frequencies
 
     def __call__(self, mean: Tensor, directions: Tensor) -> Tensor:
+        ones = mean.new_ones(mean.shape[0])
+        return self.shade_rays(mean, ones, ones, directions, torch.arange(mean.shape[0]))
+
+    def shade_rays(self, accumulated: Tensor, coloured_weight: Tensor, weight: Tensor, directions: Tensor,
+                   shaded: Tensor) -> Tensor:
+        """``[R, 3]``: for each ray of ``shaded`` (indices), ``weight`` times the colour of
+        ``accumulated / coloured_weight`` seen along its direction, 0 for the other rays; one
+        autograd node, its gradients those of PyTorch's operations (tests/test_compiled_colour.py)."""
+        if accumulated.shape[1] != self._field.appearance_grid.out_dims:
+            raise ValueError(f"shade_rays: {accumulated.shape[1]} features a ray, the network takes "
+                             f"{self._field.appearance_grid.out_dims}")
         field = self._field
         first, second, third = field.colour_mlp[0], field.colour_mlp[2], field.colour_mlp[4]
-        return _ShadeTrainingFunction.apply(mean, directions, field.appearance_basis.weight, first.weight, first.bias,
-                                            second.weight, second.bias, third.weight, third.bias, self)
+        return _ShadeRaysTrainingFunction.apply(accumulated, coloured_weight, weight, directions, shaded,
+                                                field.appearance_basis.weight, first.weight, first.bias,
+                                                second.weight, second.bias, third.weight, third.bias, self)
 
     def network(self, basis: Tensor, w1: Tensor, b1: Tensor, w2: Tensor, b2: Tensor, w3: Tensor,
                 b3: Tensor) -> tuple[_ShadeTrainingNetwork, list[Tensor]]:
@@ -371,7 +394,7 @@ def compiled_shade_training(field) -> CompiledShadeTraining | None:
     library = compiled_grid_library()
     if library is None:
         return None
-    for name in ("shade_training_forward", "shade_training_backward"):
+    for name in ("shade_rays_training_forward", "shade_rays_training_backward"):
         getattr(library, name).restype = ctypes.c_int
     library.shade_training_gradient_floats.restype = ctypes.c_int64
     return CompiledShadeTraining(field, library)

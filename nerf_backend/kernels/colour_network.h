@@ -727,7 +727,7 @@ static int64_t shade_training_threads(int64_t threads, int64_t rays) {
 /* Forward: colour [rays, 3] (the sigmoid's, before any weight) of each ray's mean features
  * [rays, features] seen along directions [rays, 3]; inputs [rays, apad + encoding], hidden1 and
  * hidden2 [rays, HIDDEN] kept for backward. */
-int shade_training_forward(const ShadeTraining *net, const float *mean, const float *directions, int64_t rays,
+static int shade_training_forward(const ShadeTraining *net, const float *mean, const float *directions, int64_t rays,
                            float *inputs, float *hidden1, float *hidden2, float *colour, int64_t threads) {
     const int status = shade_training_checked(net);
     if (status) return status;
@@ -745,7 +745,7 @@ int shade_training_forward(const ShadeTraining *net, const float *mean, const fl
 /* Backward from grad_colour [rays, 3]: grad_mean [rays, fpad], and the parameters' gradients
  * summed into gradients (shade_gradient_floats(net) floats, zero on entry: W1ᵀ, b1, W2ᵀ, b2,
  * W3, b3 in B3_FLOATS, Bᵀ); scratch holds (threads - 1) more such sums. */
-int shade_training_backward(const ShadeTraining *net, const float *mean, const float *inputs, const float *hidden1,
+static int shade_training_backward(const ShadeTraining *net, const float *mean, const float *inputs, const float *hidden1,
                             const float *hidden2, const float *colour, const float *grad_colour, int64_t rays,
                             float *grad_mean, float *gradients, float *scratch, int64_t threads) {
     const int status = shade_training_checked(net);
@@ -763,6 +763,68 @@ int shade_training_backward(const ShadeTraining *net, const float *mean, const f
     run_all(shade_training_backward_work, work, sizeof work[0], threads);
     for (int64_t t = 1; t < threads; ++t)
         for (int64_t i = 0; i < size; ++i) gradients[i] += scratch[(t - 1) * size + i];
+    return 0;
+}
+
+/* Training's deferred shading of whole rays (volume_rendering.shade_rays in one call each way):
+ * for each of `count` rays s = shaded[i], mean_i = accumulated[s] / coloured_weight[s] (kept in
+ * mean [count, features]), its colour c_i seen along directions[s] (ray_directions [count, 3]
+ * kept; colour, inputs, hidden1, hidden2 as shade_training_forward), and rgb[s] = weight[s] c_i;
+ * rgb [rays, 3] is zero on entry, and stays so for rays not shaded. The gathers are a pass over a
+ * few hundred kilobytes on the calling thread; the network runs on `threads`. */
+int shade_rays_training_forward(const ShadeTraining *net, const float *accumulated, const float *coloured_weight,
+                                const float *weight, const float *directions, const int64_t *shaded, int64_t count,
+                                float *mean, float *ray_directions, float *inputs, float *hidden1, float *hidden2,
+                                float *colour, float *rgb, int64_t threads) {
+    const int status = shade_training_checked(net);
+    if (status) return status;
+    const int32_t F = net->features;
+    for (int64_t i = 0; i < count; ++i) {
+        const int64_t s = shaded[i];
+        const float inverse = 1.0f / coloured_weight[s];
+        for (int32_t f = 0; f < F; ++f) mean[i * F + f] = accumulated[s * F + f] * inverse;
+        memcpy(ray_directions + 3 * i, directions + 3 * s, 3 * sizeof(float));
+    }
+    shade_training_forward(net, mean, ray_directions, count, inputs, hidden1, hidden2, colour, threads);
+    for (int64_t i = 0; i < count; ++i)
+        for (int c = 0; c < 3; ++c) rgb[3 * shaded[i] + c] = weight[shaded[i]] * colour[3 * i + c];
+    return 0;
+}
+
+/* Its backward from grad_rgb [rays, 3]: grad_accumulated [rays, features], grad_coloured_weight
+ * and grad_weight [rays] (zero on entry; set on the shaded rays), the parameters' gradients into
+ * gradients and scratch as shade_training_backward; grad_colour [count, 3] and grad_mean
+ * [count, fpad] are room. With m = a / w_c: dL/da = dL/dm / w_c, dL/dw_c = -(dL/dm . m) / w_c. */
+int shade_rays_training_backward(const ShadeTraining *net, const float *coloured_weight, const float *weight,
+                                 const int64_t *shaded, int64_t count, const float *mean, const float *inputs,
+                                 const float *hidden1, const float *hidden2, const float *colour,
+                                 const float *grad_rgb, float *grad_colour, float *grad_mean, float *gradients,
+                                 float *scratch, float *grad_accumulated, float *grad_coloured_weight,
+                                 float *grad_weight, int64_t threads) {
+    const int status = shade_training_checked(net);
+    if (status) return status;
+    const int32_t F = net->features, FP = net->fpad;
+    for (int64_t i = 0; i < count; ++i) {
+        const int64_t s = shaded[i];
+        float along = 0.0f;
+        for (int c = 0; c < 3; ++c) {
+            grad_colour[3 * i + c] = weight[s] * grad_rgb[3 * s + c];
+            along += grad_rgb[3 * s + c] * colour[3 * i + c];
+        }
+        grad_weight[s] = along;
+    }
+    shade_training_backward(net, mean, inputs, hidden1, hidden2, colour, grad_colour, count, grad_mean, gradients,
+                            scratch, threads);
+    for (int64_t i = 0; i < count; ++i) {
+        const int64_t s = shaded[i];
+        const float inverse = 1.0f / coloured_weight[s];
+        float along = 0.0f;
+        for (int32_t f = 0; f < F; ++f) {
+            along += grad_mean[i * FP + f] * mean[i * F + f];
+            grad_accumulated[s * F + f] = grad_mean[i * FP + f] * inverse;
+        }
+        grad_coloured_weight[s] = -along * inverse;
+    }
     return 0;
 }
 
