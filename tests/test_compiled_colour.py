@@ -149,6 +149,8 @@ def _library_for(level: str) -> ctypes.CDLL:
     for name in ("colour_samples", "shade_rays", "shade_rays_training_forward", "shade_rays_training_backward"):
         getattr(library, name).restype = ctypes.c_int
     library.shade_training_gradient_floats.restype = ctypes.c_int64
+    library.shade_training_room_floats.restype = ctypes.c_int64
+    library.shade_training_prepare.restype = None
     return library
 
 

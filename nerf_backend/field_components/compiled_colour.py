@@ -263,15 +263,15 @@ class _ShadeTrainingNetwork(ctypes.Structure):
         (name, ctypes.c_int32) for name in ("features", "fpad", "apad", "bands", "hidden")]
 
 
+class _ShadeWeights(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_void_p) for name in ("basis", "w1", "b1", "w2", "b2", "w3", "b3")] + [
+        (name, ctypes.c_int32) for name in ("appearance", "features", "encoding", "bands")]
+
+
 # colour_network.h's MAX_APAD: a basis of more outputs trains through PyTorch.
 MAX_TRAINING_BASIS = 64
-_VECTOR = 16  # widths padded to a multiple of the widest vector (colour_network.h's LANES: 16, 8 or 4),
-# and the floats b3's gradient takes (its B3_FLOATS)
-
-
-def _padded(n: int) -> int:
-    return -(-n // _VECTOR) * _VECTOR
-
+# The floats b3's gradient takes in the kernel's sums (colour_network.h's B3_FLOATS).
+_B3_FLOATS = 16
 
 class _ShadeRaysTrainingFunction(torch.autograd.Function):
     """``volume_rendering.shade_rays`` in training as one autograd node: the rays' mean features
@@ -317,7 +317,7 @@ class _ShadeRaysTrainingFunction(torch.autograd.Function):
                         ctypes.c_int64(threads))
         inputs, hidden, appearance = apad + shader.encoding, COMPILED_WIDTH, shader.appearance
         parts, at = [], 0
-        for size in (inputs * hidden, hidden, hidden * hidden, hidden, 3 * hidden, _VECTOR, features * apad):
+        for size in (inputs * hidden, hidden, hidden * hidden, hidden, 3 * hidden, _B3_FLOATS, features * apad):
             parts.append(sums[at:at + size])
             at += size
         g_w1_t, g_b1, g_w2_t, g_b2, g_w3, g_b3, g_basis_t = parts
@@ -361,22 +361,15 @@ class CompiledShadeTraining:
     def network(self, basis: Tensor, w1: Tensor, b1: Tensor, w2: Tensor, b2: Tensor, w3: Tensor,
                 b3: Tensor) -> tuple[_ShadeTrainingNetwork, list[Tensor]]:
         """The kernel's structure over this step's weights, padded and transposed as it reads
-        them, and the tensors it points into (keep them alive)."""
-        appearance, features = basis.shape
-        apad, fpad = _padded(appearance), _padded(features)
-        with torch.no_grad():
-            basis_padded = basis.new_zeros((apad, fpad))
-            basis_padded[:appearance, :features] = basis
-            w1_t = w1.new_zeros((apad + self.encoding, COMPILED_WIDTH))
-            w1_t[:appearance] = w1[:, :appearance].t()
-            w1_t[apad:] = w1[:, appearance:].t()
-            kept = [basis_padded.t()[:features].contiguous(), basis_padded, w1_t,
-                    w1_t[:apad].t().contiguous(), b1.detach().contiguous(), w2.detach().t().contiguous(),
-                    w2.detach().contiguous(), b2.detach().contiguous(), w3.detach().contiguous(),
-                    b3.detach().contiguous()]
-        network = _ShadeTrainingNetwork(*[t.data_ptr() for t in kept], features, fpad, apad, self._bands,
-                                        COMPILED_WIDTH)
-        return network, kept
+        them (``shade_training_prepare``), and the tensors it points into (keep them alive)."""
+        kept = [t.detach().float().contiguous() for t in (basis, w1, b1, w2, b2, w3, b3)]
+        weights = _ShadeWeights(*[t.data_ptr() for t in kept], basis.shape[0], basis.shape[1], self.encoding,
+                                self._bands)
+        room = kept[0].new_empty(int(self.library.shade_training_room_floats(ctypes.byref(weights))))
+        network = _ShadeTrainingNetwork()
+        self.library.shade_training_prepare(ctypes.byref(weights), ctypes.c_void_p(room.data_ptr()),
+                                            ctypes.byref(network))
+        return network, [*kept, room]
 
     def call(self, name: str, *arguments) -> None:
         converted = [ctypes.c_void_p(a.data_ptr()) if isinstance(a, Tensor) else a for a in arguments]
@@ -397,6 +390,8 @@ def compiled_shade_training(field) -> CompiledShadeTraining | None:
     for name in ("shade_rays_training_forward", "shade_rays_training_backward"):
         getattr(library, name).restype = ctypes.c_int
     library.shade_training_gradient_floats.restype = ctypes.c_int64
+    library.shade_training_room_floats.restype = ctypes.c_int64
+    library.shade_training_prepare.restype = None
     return CompiledShadeTraining(field, library)
 
 

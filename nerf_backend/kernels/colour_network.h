@@ -569,6 +569,42 @@ typedef struct {
     int32_t features, fpad, apad, bands, hidden;
 } ShadeTraining;
 
+/* The network's weights as PyTorch holds them (nn.Linear's [out, in], row-major, contiguous). */
+typedef struct {
+    const float *basis, *w1, *b1, *w2, *b2, *w3, *b3;
+    int32_t appearance, features, encoding, bands;
+} ShadeWeights;
+
+/* The floats shade_training_prepare lays the padded and transposed weights out in. */
+int64_t shade_training_room_floats(const ShadeWeights *w) {
+    const int64_t apad = PADDED(w->appearance), fpad = PADDED(w->features);
+    return (int64_t)w->features * apad + apad * fpad + (apad + w->encoding) * HIDDEN + HIDDEN * apad + HIDDEN * HIDDEN;
+}
+
+/* net over w for a step: Bᵀ, B, W1ᵀ, W1's basis columns and W2ᵀ padded with zeros and transposed
+ * into room (shade_training_room_floats), the biases, W2 and W3 read where they are. A pass over
+ * 56 KB (lego's network); through PyTorch the same was ten operators, 0.15 ms in a step. */
+void shade_training_prepare(const ShadeWeights *w, float *room, ShadeTraining *net) {
+    const int32_t A = w->appearance, F = w->features, E = w->encoding, inputs = A + E;
+    const int32_t apad = PADDED(A), fpad = PADDED(F);
+    float *basis_t = room, *basis = basis_t + (int64_t)F * apad, *w1_t = basis + (int64_t)apad * fpad;
+    float *w1_a = w1_t + (int64_t)(apad + E) * HIDDEN, *w2_t = w1_a + (int64_t)HIDDEN * apad;
+    memset(room, 0, sizeof(float) * shade_training_room_floats(w));
+    for (int32_t a = 0; a < A; ++a)
+        for (int32_t f = 0; f < F; ++f) {
+            basis[a * fpad + f] = w->basis[a * F + f];
+            basis_t[f * apad + a] = w->basis[a * F + f];
+        }
+    for (int32_t h = 0; h < HIDDEN; ++h) {
+        for (int32_t a = 0; a < A; ++a) w1_t[a * HIDDEN + h] = w1_a[h * apad + a] = w->w1[h * inputs + a];
+        for (int32_t e = 0; e < E; ++e) w1_t[(apad + e) * HIDDEN + h] = w->w1[h * inputs + A + e];
+        for (int32_t k = 0; k < HIDDEN; ++k) w2_t[k * HIDDEN + h] = w->w2[h * HIDDEN + k];
+    }
+    net->basis_t = basis_t, net->basis = basis, net->w1_t = w1_t, net->w1_a = w1_a, net->b1 = w->b1;
+    net->w2_t = w2_t, net->w2 = w->w2, net->b2 = w->b2, net->w3 = w->w3, net->b3 = w->b3;
+    net->features = F, net->fpad = fpad, net->apad = apad, net->bands = w->bands, net->hidden = HIDDEN;
+}
+
 /* A thread's gradient sums, one after the other in one buffer: W1ᵀ's, b1's, W2ᵀ's, b2's, W3's,
  * b3's (B3_FLOATS, whatever the vector width) and Bᵀ's. */
 #define B3_FLOATS 16
