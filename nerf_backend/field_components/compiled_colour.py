@@ -273,6 +273,7 @@ MAX_TRAINING_BASIS = 64
 # The floats b3's gradient takes in the kernel's sums (colour_network.h's B3_FLOATS).
 _B3_FLOATS = 16
 
+
 class _ShadeRaysTrainingFunction(torch.autograd.Function):
     """``volume_rendering.shade_rays`` in training as one autograd node: the rays' mean features
     gathered, the network, the colours weighted and scattered, forward and backward each one
@@ -317,9 +318,9 @@ class _ShadeRaysTrainingFunction(torch.autograd.Function):
                         ctypes.c_int64(threads))
         inputs, hidden, appearance = apad + shader.encoding, COMPILED_WIDTH, shader.appearance
         parts, at = [], 0
-        for size in (inputs * hidden, hidden, hidden * hidden, hidden, 3 * hidden, _B3_FLOATS, features * apad):
-            parts.append(sums[at:at + size])
-            at += size
+        for part in (inputs * hidden, hidden, hidden * hidden, hidden, 3 * hidden, _B3_FLOATS, features * apad):
+            parts.append(sums[at:at + part])
+            at += part
         g_w1_t, g_b1, g_w2_t, g_b2, g_w3, g_b3, g_basis_t = parts
         g_w1_t = g_w1_t.view(inputs, hidden)
         g_w1 = torch.cat([g_w1_t[:appearance], g_w1_t[apad:]]).t()
