@@ -1,6 +1,7 @@
 """The compiled kernels' kept workers (grid_common.h's run_all): the same results as the first
-thread alone, whatever the thread count from call to call, with two callers at once (one gets
-new threads), after the workers fell asleep, and in a forked child (which has no workers)."""
+thread alone, whatever the thread count from call to call (more workers than cores, most of
+them without an item in a job), with two callers at once (one gets new threads), after the
+workers fell asleep, and in a forked child (which has no workers)."""
 
 from __future__ import annotations
 
@@ -48,6 +49,22 @@ def test_thread_counts_changing_from_call_to_call_give_the_one_threads_result(on
         monkeypatch.setattr(torch, "get_num_threads", lambda threads=threads: threads)
         if call % 17 == 0:
             time.sleep(0.005)  # past the workers' 0.5 ms spin: they sleep and must be woken
+        with torch.no_grad():
+            assert torch.equal(compiled_grid.read_grids(grids, x), expected), f"call {call}, {threads} threads"
+
+
+def test_many_workers_on_two_cores_with_jobs_of_few_items_between_give_the_one_threads_result(monkeypatch):
+    """Jobs of up to 8 items on this machine's 2 cores, jobs of 2 between: the workers without
+    an item in a job are neither woken nor waited for, so on oversubscribed cores they fall
+    behind and then read a job they missed (its slot, then the generation again). The window
+    where a late worker could take the next job's fields is narrow: these calls run that path,
+    they cannot force the race (with one slot and no second read they passed three runs)."""
+    grids, x = _grids(), _points(8192)
+    with monkeypatch.context() as one_thread, torch.no_grad():
+        one_thread.setattr(torch, "get_num_threads", lambda: 1)
+        expected = compiled_grid.read_grids(grids, x)
+    for call, threads in enumerate([8, 2, 6, 1, 2, 3, 8, 2, 2, 7] * 60):
+        monkeypatch.setattr(torch, "get_num_threads", lambda threads=threads: threads)
         with torch.no_grad():
             assert torch.equal(compiled_grid.read_grids(grids, x), expected), f"call {call}, {threads} threads"
 

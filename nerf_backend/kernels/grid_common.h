@@ -42,7 +42,7 @@ static inline int64_t clamp_threads(int64_t threads, int64_t most) {
     return threads < 1 ? 1 : threads;
 }
 
-/* Waits of a few microseconds between spins on a shared word. */
+/* A pause between a spinning thread's reads of a shared word (spares the core's other thread). */
 #if defined(__x86_64__) || defined(__i386__)
 #define CPU_RELAX() __builtin_ia32_pause()
 #elif defined(__aarch64__)
@@ -63,12 +63,12 @@ static inline int64_t monotonic_ns(void) {
     return (int64_t)now.tv_sec * 1000000000 + now.tv_nsec;
 }
 
-/* Spins until (*word == value) is `equal`, or POOL_SPIN_NS pass; returns whether it came true. */
-static inline int spin_until(const int64_t *word, int64_t value, int equal) {
+/* Spins until *word is 0 or POOL_SPIN_NS pass; returns whether it came to 0. */
+static inline int spin_until_zero(const int64_t *word) {
     const int64_t until = monotonic_ns() + POOL_SPIN_NS;
     for (;;) {
         for (int i = 0; i < 64; ++i) {
-            if ((__atomic_load_n(word, __ATOMIC_ACQUIRE) == value) == equal) return 1;
+            if (__atomic_load_n(word, __ATOMIC_ACQUIRE) == 0) return 1;
             CPU_RELAX();
         }
         if (monotonic_ns() > until) return 0;
@@ -76,47 +76,75 @@ static inline int spin_until(const int64_t *word, int64_t value, int equal) {
     }
 }
 
-/* Workers kept between calls of run_all (one pool per library): starting threads for each call
- * cost 27-47 us on 2 cores, more than some of a training step's kernels take. Worker w runs
- * item w of each job that has more than w items. `generation` counts the jobs; `unfinished`
- * the workers that have not yet answered the current one: every worker answers every job, so
- * none can still be reading a job's fields when the next job writes them. */
+/* One call of run_all as the workers read it: item 0 is the caller's, worker w runs item w
+ * where w < threads. */
 typedef struct {
-    pthread_mutex_t busy; /* held by the caller whose job the pool runs */
-    pthread_mutex_t lock; /* with the two conditions, for sleeping workers and caller */
-    pthread_cond_t job_posted, job_done;
-    int64_t generation, unfinished, workers;
     void *(*fn)(void *);
     char *items;
     size_t size;
     int64_t threads;
+} PoolJob;
+
+/* Workers kept between calls of run_all (one pool per library): starting threads for each call
+ * cost 27-47 us on 2 cores, more than some of a training step's kernels take. `generation`
+ * counts the jobs; job g lies in jobs[g % 2], and a worker that found g reads it there and then
+ * reads the generation again, so that a worker late to a job it has no item in (nobody waits
+ * for it) never takes the next job's fields, which are written to the other slot, for g's.
+ * Only a job's own workers are woken, and the caller waits for them alone: on a machine of
+ * many cores a job of two items costs one worker, not all of them. A worker spins
+ * POOL_SPIN_NS after each job it ran, then sleeps on its own condition variable. */
+typedef struct {
+    pthread_mutex_t busy; /* held by the caller whose job the pool runs */
+    pthread_mutex_t lock; /* with the conditions: sleeping workers and the waiting caller */
+    pthread_cond_t job_done;
+    pthread_cond_t wake[MAX_THREADS];
+    int64_t generation, unfinished, workers;
+    PoolJob jobs[2];
 } WorkerPool;
 
-static WorkerPool worker_pool = {PTHREAD_MUTEX_INITIALIZER, PTHREAD_MUTEX_INITIALIZER,
-                                 PTHREAD_COND_INITIALIZER, PTHREAD_COND_INITIALIZER, 0, 0, 0, NULL,
-                                 NULL, 0, 0};
+/* Its wake conditions are initialised at the first job (worker_pool_start). */
+static WorkerPool worker_pool = {.busy = PTHREAD_MUTEX_INITIALIZER, .lock = PTHREAD_MUTEX_INITIALIZER,
+                                 .job_done = PTHREAD_COND_INITIALIZER};
 /* The generation each worker was started at: the job it was started for is new to it. */
 static int64_t worker_first_generation[MAX_THREADS];
-static pthread_once_t worker_pool_fork_once = PTHREAD_ONCE_INIT;
+static pthread_once_t worker_pool_once = PTHREAD_ONCE_INIT;
+
+/* The next job's generation after `seen`: spun for until `spin_until` (ns), then slept for. */
+static int64_t pool_next_generation(WorkerPool *pool, int64_t index, int64_t seen, int64_t spin_until) {
+    int64_t generation;
+    for (;;) {
+        for (int i = 0; i < 64; ++i) {
+            if ((generation = __atomic_load_n(&pool->generation, __ATOMIC_ACQUIRE)) != seen) return generation;
+            CPU_RELAX();
+        }
+        if (monotonic_ns() > spin_until) break;
+        sched_yield();
+    }
+    pthread_mutex_lock(&pool->lock);
+    while ((generation = __atomic_load_n(&pool->generation, __ATOMIC_ACQUIRE)) == seen)
+        pthread_cond_wait(&pool->wake[index], &pool->lock);
+    pthread_mutex_unlock(&pool->lock);
+    return generation;
+}
 
 static void *pool_worker(void *argument) {
     const int64_t index = (int64_t)(intptr_t)argument;
     WorkerPool *pool = &worker_pool;
-    int64_t seen = worker_first_generation[index];
+    int64_t seen = worker_first_generation[index], spin_until = 0;
     for (;;) {
-        if (!spin_until(&pool->generation, seen, 0)) {
-            pthread_mutex_lock(&pool->lock);
-            while (__atomic_load_n(&pool->generation, __ATOMIC_ACQUIRE) == seen)
-                pthread_cond_wait(&pool->job_posted, &pool->lock);
-            pthread_mutex_unlock(&pool->lock);
-        }
-        seen = __atomic_load_n(&pool->generation, __ATOMIC_ACQUIRE);
-        if (index < pool->threads) pool->fn(pool->items + index * pool->size);
+        const int64_t generation = pool_next_generation(pool, index, seen, spin_until);
+        const PoolJob job = pool->jobs[generation & 1];
+        __atomic_thread_fence(__ATOMIC_ACQUIRE);
+        if (__atomic_load_n(&pool->generation, __ATOMIC_RELAXED) != generation) continue;  /* late: read again */
+        seen = generation;
+        if (index >= job.threads) continue;
+        job.fn(job.items + index * job.size);
         if (__atomic_sub_fetch(&pool->unfinished, 1, __ATOMIC_ACQ_REL) == 0) {
             pthread_mutex_lock(&pool->lock);
             pthread_cond_signal(&pool->job_done);
             pthread_mutex_unlock(&pool->lock);
         }
+        spin_until = monotonic_ns() + POOL_SPIN_NS;
     }
     return NULL;
 }
@@ -126,13 +154,16 @@ static void worker_pool_after_fork(void) {
     WorkerPool *pool = &worker_pool;
     pthread_mutex_init(&pool->busy, NULL);
     pthread_mutex_init(&pool->lock, NULL);
-    pthread_cond_init(&pool->job_posted, NULL);
     pthread_cond_init(&pool->job_done, NULL);
+    for (int w = 0; w < MAX_THREADS; ++w) pthread_cond_init(&pool->wake[w], NULL);
     pool->workers = 0;
     pool->unfinished = 0;
 }
 
-static void worker_pool_register_fork(void) { pthread_atfork(NULL, NULL, worker_pool_after_fork); }
+static void worker_pool_start(void) {
+    for (int w = 0; w < MAX_THREADS; ++w) pthread_cond_init(&worker_pool.wake[w], NULL);
+    pthread_atfork(NULL, NULL, worker_pool_after_fork);
+}
 
 /* Runs fn on each of `threads` work items (`size` bytes apart from `work`): the first on the
  * calling thread, the others on the pool's workers, or on new threads while another caller has
@@ -160,7 +191,7 @@ static inline void run_all(void *(*fn)(void *), void *work, size_t size, int64_t
         run_all_on_new_threads(fn, items, size, threads);
         return;
     }
-    pthread_once(&worker_pool_fork_once, worker_pool_register_fork);
+    pthread_once(&worker_pool_once, worker_pool_start);
     while (pool->workers + 1 < threads) {
         const int64_t index = pool->workers + 1;
         pthread_t handle;
@@ -170,18 +201,22 @@ static inline void run_all(void *(*fn)(void *), void *work, size_t size, int64_t
         pool->workers = index;
     }
     const int64_t pooled = threads - 1 < pool->workers ? threads - 1 : pool->workers;
-    pool->fn = fn;
-    pool->items = items;
-    pool->size = size;
-    pool->threads = pooled + 1;
-    __atomic_store_n(&pool->unfinished, pool->workers, __ATOMIC_RELEASE);
+    const int64_t generation = pool->generation + 1;
+    /* The slot is written after every earlier store (the last generation's among them) is seen. */
+    __atomic_thread_fence(__ATOMIC_SEQ_CST);
+    PoolJob *job = &pool->jobs[generation & 1];
+    job->fn = fn;
+    job->items = items;
+    job->size = size;
+    job->threads = pooled + 1;
+    __atomic_store_n(&pool->unfinished, pooled, __ATOMIC_RELAXED);
     pthread_mutex_lock(&pool->lock);
-    __atomic_add_fetch(&pool->generation, 1, __ATOMIC_ACQ_REL);
-    pthread_cond_broadcast(&pool->job_posted);
+    __atomic_store_n(&pool->generation, generation, __ATOMIC_RELEASE);
+    for (int64_t w = 1; w <= pooled; ++w) pthread_cond_signal(&pool->wake[w]);
     pthread_mutex_unlock(&pool->lock);
     fn(items);
     for (int64_t t = pooled + 1; t < threads; ++t) fn(items + t * size);
-    if (!spin_until(&pool->unfinished, 0, 1)) {
+    if (!spin_until_zero(&pool->unfinished)) {
         pthread_mutex_lock(&pool->lock);
         while (__atomic_load_n(&pool->unfinished, __ATOMIC_ACQUIRE) != 0)
             pthread_cond_wait(&pool->job_done, &pool->lock);
