@@ -14,7 +14,6 @@ The examples plan 100×100 views at radius 4 of a 2 × 2 × 0.5 box (``_example`
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from pathlib import Path
 from typing import Iterator
@@ -274,6 +273,7 @@ def auto_rays(facts: RunFacts, plan: RunPlan) -> Iterator[Proposal]:
         >>> facts, plan = _example()
         >>> next(auto_rays(facts, plan)).value
         2048
+        >>> import dataclasses
         >>> next(auto_rays(facts, dataclasses.replace(plan, device=torch.device("cuda")))).value
         8192
     """
