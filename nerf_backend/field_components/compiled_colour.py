@@ -287,14 +287,16 @@ class _ShadeRaysTrainingFunction(torch.autograd.Function):
             t.detach().float().contiguous() for t in (accumulated, coloured_weight, weight, directions))
         shaded = shaded.to(torch.int64).contiguous()
         count, inputs = shaded.numel(), network.apad + shader.encoding
-        mean, ray_directions = accumulated.new_empty((count, network.features)), accumulated.new_empty((count, 3))
-        hidden1, hidden2 = accumulated.new_empty((count, COMPILED_WIDTH)), accumulated.new_empty((count, COMPILED_WIDTH))
-        x1, colour = accumulated.new_empty((count, inputs)), accumulated.new_empty((count, 3))
+        # What backward keeps, in one allocation: the rays' mean features, layer inputs, two hidden layers, colours.
+        widths = (network.features, inputs, COMPILED_WIDTH, COMPILED_WIDTH, 3)
+        mean, x1, hidden1, hidden2, colour = (
+            part.view(count, width) for part, width in
+            zip(accumulated.new_empty(count * sum(widths)).split([count * w for w in widths]), widths))
         rgb = accumulated.new_zeros((accumulated.shape[0], 3))
         if count:
             shader.call("shade_rays_training_forward", ctypes.byref(network), accumulated, coloured_weight, weight,
-                        directions, shaded, ctypes.c_int64(count), mean, ray_directions, x1, hidden1, hidden2, colour,
-                        rgb, ctypes.c_int64(torch.get_num_threads()))
+                        directions, shaded, ctypes.c_int64(count), mean, x1, hidden1, hidden2, colour, rgb,
+                        ctypes.c_int64(torch.get_num_threads()))
         ctx.save_for_backward(coloured_weight, weight, shaded, mean, x1, hidden1, hidden2, colour)
         ctx.network, ctx.kept, ctx.shader, ctx.rays = network, kept, shader, accumulated.shape[0]
         return rgb
@@ -310,12 +312,10 @@ class _ShadeRaysTrainingFunction(torch.autograd.Function):
         grad_accumulated, grad_coloured_weight = mean.new_zeros((ctx.rays, features)), mean.new_zeros(ctx.rays)
         grad_weight = mean.new_zeros(ctx.rays)
         if count:
-            grad_colour, grad_mean = mean.new_empty((count, 3)), mean.new_empty((count, network.fpad))
             scratch = mean.new_empty(max(threads - 1, 1) * size)
             shader.call("shade_rays_training_backward", ctypes.byref(network), coloured_weight, weight, shaded,
                         ctypes.c_int64(count), mean, x1, hidden1, hidden2, colour, grad_rgb.float().contiguous(),
-                        grad_colour, grad_mean, sums, scratch, grad_accumulated, grad_coloured_weight, grad_weight,
-                        ctypes.c_int64(threads))
+                        sums, scratch, grad_accumulated, grad_coloured_weight, grad_weight, ctypes.c_int64(threads))
         inputs, hidden, appearance = apad + shader.encoding, COMPILED_WIDTH, shader.appearance
         parts, at = [], 0
         for part in (inputs * hidden, hidden, hidden * hidden, hidden, 3 * hidden, _B3_FLOATS, features * apad):

@@ -657,14 +657,23 @@ static inline void tile_rows(float *dst, int64_t dst_stride, const float *src, i
 #define MAX_TRAIN_INPUTS (MAX_APAD + 3 * (1 + 2 * MAX_BANDS))
 #define MAX_FPAD (MAX_FEATURES + 16)
 
+/* A thread's share of a step's shaded rays, i in [begin, end): ray shaded[i] of the step's. */
 typedef struct {
     const ShadeTraining *net;
-    const float *mean, *directions, *grad_colour;
-    float *inputs, *hidden1, *hidden2, *colour;  /* forward's outputs, backward's inputs */
-    float *grad_mean;                             /* [rays, fpad] */
-    float *gradients;                             /* this thread's sums (shade_gradient_floats) */
+    const int64_t *shaded;
+    const float *accumulated, *coloured_weight, *weight, *directions;   /* [rays, ...]: the step's */
+    float *mean, *inputs, *hidden1, *hidden2, *colour;  /* [count, ...]: forward's, kept for backward */
+    float *rgb;                                        /* forward: [rays, 3] */
+    const float *grad_rgb;                             /* backward: [rays, 3] */
+    float *grad_accumulated, *grad_coloured_weight, *grad_weight;      /* backward: [rays, ...] */
+    float *gradients;                                  /* backward: this thread's sums (shade_gradient_floats) */
     int64_t begin, end;
 } ShadeTrainingWork;
+
+/* The rays of a tile (its last repeated past `count`: their results are not written). */
+static inline int64_t tile_ray(const ShadeTrainingWork *w, int64_t first, int64_t count, int t) {
+    return w->shaded[first + (t < count ? t : count - 1)];
+}
 
 static void *shade_training_forward_work(void *arg) {
     const ShadeTrainingWork *w = (const ShadeTrainingWork *)arg;
@@ -674,20 +683,28 @@ static void *shade_training_forward_work(void *arg) {
     float h1[SHADE_ROWS][HIDDEN], h2[SHADE_ROWS][HIDDEN];
     for (int64_t first = w->begin; first < w->end; first += SHADE_ROWS) {
         const int64_t count = w->end - first < SHADE_ROWS ? w->end - first : SHADE_ROWS;
-        tile_rows(&mean[0][0], MAX_FPAD, w->mean, F, first, count, F);
+        for (int t = 0; t < SHADE_ROWS; ++t) {  /* the ray's mean features, the encoding of its direction */
+            const int64_t s = tile_ray(w, first, count, t);
+            const float inverse = 1.0f / w->coloured_weight[s];
+            for (int32_t f = 0; f < F; ++f) mean[t][f] = w->accumulated[s * F + f] * inverse;
+            encode_direction(w->directions + 3 * s, net->bands, x1[t] + A);
+        }
         dense_rows(&x1[0][0], MAX_TRAIN_INPUTS, &mean[0][0], MAX_FPAD, net->basis_t, A, NULL, F, 0);
-        for (int t = 0; t < SHADE_ROWS; ++t)
-            encode_direction(w->directions + 3 * (first + (t < count ? t : count - 1)), net->bands, x1[t] + A);
         dense_rows(&h1[0][0], HIDDEN, &x1[0][0], MAX_TRAIN_INPUTS, net->w1_t, HIDDEN, net->b1, inputs, 1);
         dense_rows(&h2[0][0], HIDDEN, &h1[0][0], HIDDEN, net->w2_t, HIDDEN, net->b2, HIDDEN, 1);
         for (int t = 0; t < count; ++t) {
-            const int64_t r = first + t;
+            const int64_t i = first + t, s = w->shaded[i];
             wide h[HIDDEN_VECTORS];
             for (int j = 0; j < HIDDEN_VECTORS; ++j) h[j] = load_wide(h2[t] + j * LANES);
-            for (int c = 0; c < 3; ++c) w->colour[3 * r + c] = colour_channel(h, net->w3, net->b3[c], c);
-            memcpy(w->inputs + r * inputs, x1[t], sizeof(float) * inputs);
-            memcpy(w->hidden1 + r * HIDDEN, h1[t], sizeof h1[t]);
-            memcpy(w->hidden2 + r * HIDDEN, h2[t], sizeof h2[t]);
+            for (int c = 0; c < 3; ++c) {
+                const float colour = colour_channel(h, net->w3, net->b3[c], c);
+                w->colour[3 * i + c] = colour;
+                w->rgb[3 * s + c] = w->weight[s] * colour;
+            }
+            memcpy(w->mean + i * F, mean[t], sizeof(float) * F);
+            memcpy(w->inputs + i * inputs, x1[t], sizeof(float) * inputs);
+            memcpy(w->hidden1 + i * HIDDEN, h1[t], sizeof h1[t]);
+            memcpy(w->hidden2 + i * HIDDEN, h2[t], sizeof h2[t]);
         }
     }
     return NULL;
@@ -708,19 +725,27 @@ static void *shade_training_backward_work(void *arg) {
         tile_rows(&x1[0][0], MAX_TRAIN_INPUTS, w->inputs, inputs, first, count, inputs);
         tile_rows(&h1[0][0], HIDDEN, w->hidden1, HIDDEN, first, count, HIDDEN);
         tile_rows(&h2[0][0], HIDDEN, w->hidden2, HIDDEN, first, count, HIDDEN);
-        /* Through the sigmoid and the third layer; a repeated ray past `count` carries nothing. */
+        /* Through the weighting (rgb = weight · colour), the sigmoid and the third layer; a
+         * repeated ray past `count` carries nothing. */
         for (int t = 0; t < SHADE_ROWS; ++t) {
             wide dh[HIDDEN_VECTORS];
             for (int j = 0; j < HIDDEN_VECTORS; ++j) dh[j] = splat_wide(0.0f);
-            for (int c = 0; c < 3 && t < count; ++c) {
-                const int64_t r = first + t;
-                const float s = w->colour[3 * r + c], dz = w->grad_colour[3 * r + c] * s * (1.0f - s);
-                g_b3[c] += dz;
-                for (int j = 0; j < HIDDEN_VECTORS; ++j) {
-                    const wide x = splat_wide(dz);
-                    store_wide(g_w3 + c * HIDDEN + j * LANES, load_wide(g_w3 + c * HIDDEN + j * LANES) + x * load_wide(h2[t] + j * LANES));
-                    dh[j] += x * load_wide(net->w3 + c * HIDDEN + j * LANES);
+            if (t < count) {
+                const int64_t i = first + t, s = w->shaded[i];
+                float along = 0.0f;
+                for (int c = 0; c < 3; ++c) {
+                    const float grad = w->grad_rgb[3 * s + c], colour = w->colour[3 * i + c];
+                    along += grad * colour;
+                    const float dz = w->weight[s] * grad * colour * (1.0f - colour);
+                    g_b3[c] += dz;
+                    for (int j = 0; j < HIDDEN_VECTORS; ++j) {
+                        const wide x = splat_wide(dz);
+                        store_wide(g_w3 + c * HIDDEN + j * LANES,
+                                   load_wide(g_w3 + c * HIDDEN + j * LANES) + x * load_wide(h2[t] + j * LANES));
+                        dh[j] += x * load_wide(net->w3 + c * HIDDEN + j * LANES);
+                    }
                 }
+                w->grad_weight[s] = along;
             }
             for (int j = 0; j < HIDDEN_VECTORS; ++j) {  /* through the second ReLU: h2 > 0 where it passed */
                 const wide kept = (wide)((wide_mask)dh[j] & (load_wide(h2[t] + j * LANES) > splat_wide(0.0f)));
@@ -743,7 +768,17 @@ static void *shade_training_backward_work(void *arg) {
         dense_rows(&da[0][0], MAX_APAD, &dz1[0][0], HIDDEN, net->w1_a, A, NULL, HIDDEN, 0);
         outer_accumulate(g_basis_t, A, &mean[0][0], MAX_FPAD, F, &da[0][0], MAX_APAD);
         dense_rows(&dmean[0][0], MAX_FPAD, &da[0][0], MAX_APAD, net->basis, FP, NULL, A, 0);
-        for (int t = 0; t < count; ++t) memcpy(w->grad_mean + (first + t) * FP, dmean[t], sizeof(float) * FP);
+        /* Into the ray's sums: with m = a / w_c, dL/da = dL/dm / w_c and dL/dw_c = -(dL/dm · m) / w_c. */
+        for (int t = 0; t < count; ++t) {
+            const int64_t s = w->shaded[first + t];
+            const float inverse = 1.0f / w->coloured_weight[s];
+            float along = 0.0f;
+            for (int32_t f = 0; f < F; ++f) {
+                along += dmean[t][f] * mean[t][f];
+                w->grad_accumulated[s * F + f] = dmean[t][f] * inverse;
+            }
+            w->grad_coloured_weight[s] = -along * inverse;
+        }
     }
     return NULL;
 }
@@ -756,111 +791,67 @@ static int shade_training_checked(const ShadeTraining *net) {
     return 0;
 }
 
+/* Threads for `rays` shaded rays: one a 512 (a thread's share of fewer took longer than its
+ * start and its gradients' sum). */
 static int64_t shade_training_threads(int64_t threads, int64_t rays) {
     return clamp_threads(threads, (rays + 511) / 512);
 }
 
-/* Forward: colour [rays, 3] (the sigmoid's, before any weight) of each ray's mean features
- * [rays, features] seen along directions [rays, 3]; inputs [rays, apad + encoding], hidden1 and
- * hidden2 [rays, HIDDEN] kept for backward. */
-static int shade_training_forward(const ShadeTraining *net, const float *mean, const float *directions, int64_t rays,
-                           float *inputs, float *hidden1, float *hidden2, float *colour, int64_t threads) {
+/* Training's deferred shading of whole rays (volume_rendering.shade_rays), forward and backward
+ * each in one call, the gathers and scatters inside the threads' tiles: for each of `count`
+ * rays s = shaded[i] (each at most once), its mean features m_i = accumulated[s] /
+ * coloured_weight[s] (kept in mean [count, features]), its colour c_i seen along directions[s]
+ * (colour [count, 3], the sigmoid's; the layers' inputs [count, apad + encoding] and hidden1,
+ * hidden2 [count, HIDDEN] kept for backward), and rgb[s] = weight[s] c_i; rgb [rays, 3] is zero
+ * on entry, and stays so for rays not shaded. */
+int shade_rays_training_forward(const ShadeTraining *net, const float *accumulated, const float *coloured_weight,
+                                const float *weight, const float *directions, const int64_t *shaded, int64_t count,
+                                float *mean, float *inputs, float *hidden1, float *hidden2, float *colour, float *rgb,
+                                int64_t threads) {
     const int status = shade_training_checked(net);
     if (status) return status;
-    threads = shade_training_threads(threads, rays);
+    threads = shade_training_threads(threads, count);
     ShadeTrainingWork work[MAX_THREADS];
     for (int64_t t = 0; t < threads; ++t) {
-        ShadeTrainingWork item = {net, mean, directions, NULL, inputs, hidden1, hidden2, colour, NULL, NULL,
-                                  rays * t / threads, rays * (t + 1) / threads};
+        ShadeTrainingWork item = {.net = net, .shaded = shaded, .accumulated = accumulated,
+                                  .coloured_weight = coloured_weight, .weight = weight, .directions = directions,
+                                  .mean = mean, .inputs = inputs, .hidden1 = hidden1, .hidden2 = hidden2,
+                                  .colour = colour, .rgb = rgb, .begin = count * t / threads,
+                                  .end = count * (t + 1) / threads};
         work[t] = item;
     }
     run_all(shade_training_forward_work, work, sizeof work[0], threads);
     return 0;
 }
 
-/* Backward from grad_colour [rays, 3]: grad_mean [rays, fpad], and the parameters' gradients
- * summed into gradients (shade_gradient_floats(net) floats, zero on entry: W1ᵀ, b1, W2ᵀ, b2,
- * W3, b3 in B3_FLOATS, Bᵀ); scratch holds (threads - 1) more such sums. */
-static int shade_training_backward(const ShadeTraining *net, const float *mean, const float *inputs, const float *hidden1,
-                            const float *hidden2, const float *colour, const float *grad_colour, int64_t rays,
-                            float *grad_mean, float *gradients, float *scratch, int64_t threads) {
+/* Its backward from grad_rgb [rays, 3]: grad_accumulated [rays, features], grad_coloured_weight
+ * and grad_weight [rays] (zero on entry; set on the shaded rays), and the parameters' gradients
+ * summed into gradients (shade_gradient_floats(net) floats, zero on entry: W1ᵀ, b1, W2ᵀ, b2, W3,
+ * b3 in B3_FLOATS, Bᵀ); scratch holds (threads - 1) more such sums. */
+int shade_rays_training_backward(const ShadeTraining *net, const float *coloured_weight, const float *weight,
+                                 const int64_t *shaded, int64_t count, const float *mean, const float *inputs,
+                                 const float *hidden1, const float *hidden2, const float *colour,
+                                 const float *grad_rgb, float *gradients, float *scratch, float *grad_accumulated,
+                                 float *grad_coloured_weight, float *grad_weight, int64_t threads) {
     const int status = shade_training_checked(net);
     if (status) return status;
-    threads = shade_training_threads(threads, rays);
+    threads = shade_training_threads(threads, count);
     const int64_t size = shade_gradient_floats(net);
     ShadeTrainingWork work[MAX_THREADS];
     for (int64_t t = 0; t < threads; ++t) {
         float *sums = t == 0 ? gradients : scratch + (t - 1) * size;
         if (t > 0) memset(sums, 0, sizeof(float) * size);
-        ShadeTrainingWork item = {net, mean, NULL, grad_colour, (float *)inputs, (float *)hidden1, (float *)hidden2,
-                                  (float *)colour, grad_mean, sums, rays * t / threads, rays * (t + 1) / threads};
+        ShadeTrainingWork item = {.net = net, .shaded = shaded, .coloured_weight = coloured_weight, .weight = weight,
+                                  .mean = (float *)mean, .inputs = (float *)inputs, .hidden1 = (float *)hidden1,
+                                  .hidden2 = (float *)hidden2, .colour = (float *)colour, .grad_rgb = grad_rgb,
+                                  .grad_accumulated = grad_accumulated, .grad_coloured_weight = grad_coloured_weight,
+                                  .grad_weight = grad_weight, .gradients = sums, .begin = count * t / threads,
+                                  .end = count * (t + 1) / threads};
         work[t] = item;
     }
     run_all(shade_training_backward_work, work, sizeof work[0], threads);
     for (int64_t t = 1; t < threads; ++t)
         for (int64_t i = 0; i < size; ++i) gradients[i] += scratch[(t - 1) * size + i];
-    return 0;
-}
-
-/* Training's deferred shading of whole rays (volume_rendering.shade_rays in one call each way):
- * for each of `count` rays s = shaded[i], mean_i = accumulated[s] / coloured_weight[s] (kept in
- * mean [count, features]), its colour c_i seen along directions[s] (ray_directions [count, 3]
- * kept; colour, inputs, hidden1, hidden2 as shade_training_forward), and rgb[s] = weight[s] c_i;
- * rgb [rays, 3] is zero on entry, and stays so for rays not shaded. The gathers are a pass over a
- * few hundred kilobytes on the calling thread; the network runs on `threads`. */
-int shade_rays_training_forward(const ShadeTraining *net, const float *accumulated, const float *coloured_weight,
-                                const float *weight, const float *directions, const int64_t *shaded, int64_t count,
-                                float *mean, float *ray_directions, float *inputs, float *hidden1, float *hidden2,
-                                float *colour, float *rgb, int64_t threads) {
-    const int status = shade_training_checked(net);
-    if (status) return status;
-    const int32_t F = net->features;
-    for (int64_t i = 0; i < count; ++i) {
-        const int64_t s = shaded[i];
-        const float inverse = 1.0f / coloured_weight[s];
-        for (int32_t f = 0; f < F; ++f) mean[i * F + f] = accumulated[s * F + f] * inverse;
-        memcpy(ray_directions + 3 * i, directions + 3 * s, 3 * sizeof(float));
-    }
-    shade_training_forward(net, mean, ray_directions, count, inputs, hidden1, hidden2, colour, threads);
-    for (int64_t i = 0; i < count; ++i)
-        for (int c = 0; c < 3; ++c) rgb[3 * shaded[i] + c] = weight[shaded[i]] * colour[3 * i + c];
-    return 0;
-}
-
-/* Its backward from grad_rgb [rays, 3]: grad_accumulated [rays, features], grad_coloured_weight
- * and grad_weight [rays] (zero on entry; set on the shaded rays), the parameters' gradients into
- * gradients and scratch as shade_training_backward; grad_colour [count, 3] and grad_mean
- * [count, fpad] are room. With m = a / w_c: dL/da = dL/dm / w_c, dL/dw_c = -(dL/dm . m) / w_c. */
-int shade_rays_training_backward(const ShadeTraining *net, const float *coloured_weight, const float *weight,
-                                 const int64_t *shaded, int64_t count, const float *mean, const float *inputs,
-                                 const float *hidden1, const float *hidden2, const float *colour,
-                                 const float *grad_rgb, float *grad_colour, float *grad_mean, float *gradients,
-                                 float *scratch, float *grad_accumulated, float *grad_coloured_weight,
-                                 float *grad_weight, int64_t threads) {
-    const int status = shade_training_checked(net);
-    if (status) return status;
-    const int32_t F = net->features, FP = net->fpad;
-    for (int64_t i = 0; i < count; ++i) {
-        const int64_t s = shaded[i];
-        float along = 0.0f;
-        for (int c = 0; c < 3; ++c) {
-            grad_colour[3 * i + c] = weight[s] * grad_rgb[3 * s + c];
-            along += grad_rgb[3 * s + c] * colour[3 * i + c];
-        }
-        grad_weight[s] = along;
-    }
-    shade_training_backward(net, mean, inputs, hidden1, hidden2, colour, grad_colour, count, grad_mean, gradients,
-                            scratch, threads);
-    for (int64_t i = 0; i < count; ++i) {
-        const int64_t s = shaded[i];
-        const float inverse = 1.0f / coloured_weight[s];
-        float along = 0.0f;
-        for (int32_t f = 0; f < F; ++f) {
-            along += grad_mean[i * FP + f] * mean[i * F + f];
-            grad_accumulated[s * F + f] = grad_mean[i * FP + f] * inverse;
-        }
-        grad_coloured_weight[s] = -along * inverse;
-    }
     return 0;
 }
 
