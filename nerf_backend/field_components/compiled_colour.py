@@ -309,13 +309,16 @@ class _ShadeRaysTrainingFunction(torch.autograd.Function):
         threads = torch.get_num_threads()
         size = int(shader.library.shade_training_gradient_floats(ctypes.byref(network)))
         sums = mean.new_zeros(size)
-        grad_accumulated, grad_coloured_weight = mean.new_zeros((ctx.rays, features)), mean.new_zeros(ctx.rays)
-        grad_weight = mean.new_zeros(ctx.rays)
-        if count:
-            scratch = mean.new_empty(max(threads - 1, 1) * size)
+        if count:  # the kernel writes the rays' gradients whole, zeros included
+            grad_accumulated, grad_coloured_weight = mean.new_empty((ctx.rays, features)), mean.new_empty(ctx.rays)
+            grad_weight, scratch = mean.new_empty(ctx.rays), mean.new_empty(max(threads - 1, 1) * size)
             shader.call("shade_rays_training_backward", ctypes.byref(network), coloured_weight, weight, shaded,
-                        ctypes.c_int64(count), mean, x1, hidden1, hidden2, colour, grad_rgb.float().contiguous(),
-                        sums, scratch, grad_accumulated, grad_coloured_weight, grad_weight, ctypes.c_int64(threads))
+                        ctypes.c_int64(count), ctypes.c_int64(ctx.rays), mean, x1, hidden1, hidden2, colour,
+                        grad_rgb.float().contiguous(), sums, scratch, grad_accumulated, grad_coloured_weight,
+                        grad_weight, ctypes.c_int64(threads))
+        else:
+            grad_accumulated, grad_coloured_weight = mean.new_zeros((ctx.rays, features)), mean.new_zeros(ctx.rays)
+            grad_weight = mean.new_zeros(ctx.rays)
         inputs, hidden, appearance = apad + shader.encoding, COMPILED_WIDTH, shader.appearance
         parts, at = [], 0
         for part in (inputs * hidden, hidden, hidden * hidden, hidden, 3 * hidden, _B3_FLOATS, features * apad):
