@@ -59,7 +59,8 @@ DEFERRED_COLOUR_REASON = (
     "35.49 (69 708 steps against 41 851; the grid's training pass and compositing are one compiled "
     "call with deferred colour) and eval 1.08 s a view against 1.79; after 10 minutes 33.71 dB against "
     "33.20; on the 100×100 suite after 120 s ahead on 8 of 9 scenes (+0.02 to +0.90 dB), 0.15 dB behind on "
-    "20_specular (docs/benchmarks_lego.md, \"Deferred colour\")")
+    "20_specular (docs/benchmarks_lego.md, \"Deferred colour\"; on another machine later 0.43 dB behind there, "
+    "44.69 dB over three runs against 45.12 over two, and 0.26 dB ahead on it at 800×800: docs/benchmarks.md)")
 # Colour shaped by the scene's materials (grid.region_appearance): metal samples see the view
 # reflected about Blender's true surface, thin-film ones that and the view (docs/benchmarks.md,
 # "Colour shaped by the scene's materials"). Glossy dielectrics keep the view (A.blend's scored
