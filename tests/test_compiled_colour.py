@@ -346,6 +346,18 @@ def test_training_shades_whole_rays_in_one_node_with_autograds_colour_and_gradie
         assert float(reference.abs().max()) > 1e-3, name  # gradients that say something
 
 
+def test_training_shading_of_no_rays_gives_empty_colours_and_zero_gradients():
+    """No ray to shade: an empty image, and the parameters' gradients zero (not unset), as
+    autograd's through PyTorch's operations on no rows."""
+    field = _field(deferred_colour=True).train()
+    compiled = compiled_colour.compiled_shade_training(field)
+    mean, directions, upstream = _training_case(field, 0, seed=1)
+    colour, grad_mean, grads = _gradients(field, compiled, mean, directions, upstream)
+    _, _, expected = _gradients(field, _pytorch_shade(field), mean, directions, upstream)
+    assert colour.shape == (0, 3) and grad_mean.shape == mean.shape
+    assert set(grads) == set(expected) and all(not g.any() for g in grads.values())
+
+
 def test_the_grid_field_trains_its_shading_through_the_compiled_pass_outside_autocast():
     field = _field(deferred_colour=True).train()
     assert isinstance(field.shade_fn(), compiled_colour.CompiledShadeTraining)

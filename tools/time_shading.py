@@ -25,7 +25,6 @@ features, then three layers), three times that forward and backward."""
 from __future__ import annotations
 
 import argparse
-import ctypes
 import statistics
 import time
 from pathlib import Path
@@ -36,8 +35,7 @@ from nerf_backend.bench.hardware import measure_hardware
 from nerf_backend.core.allocator import keep_freed_memory
 from nerf_backend.data.run_folder import RunFolder
 from nerf_backend.evaluation.inference import load_trained_model
-from nerf_backend.field_components.compiled_colour import (COMPILED_WIDTH, compiled_shade,
-                                                           compiled_shade_training)
+from nerf_backend.field_components.compiled_colour import COMPILED_WIDTH, compiled_shade, compiled_shade_training
 from nerf_backend.model_components.volume_rendering import MIN_SHADED_WEIGHT, shade_rays
 
 
@@ -78,32 +76,19 @@ def median_seconds(run, calls: int) -> float:
 
 
 def compiled_pass(field, composited) -> callable:
-    """The training pass's two compiled calls alone, on buffers made once."""
+    """The training pass's two compiled calls alone (``CompiledShadeTraining.forward_pass`` and
+    ``backward_pass``, their buffers included), without autograd."""
     shader = compiled_shade_training(field)
     accumulated, coloured_weight, weight, directions = composited
     shaded = (coloured_weight > MIN_SHADED_WEIGHT).nonzero().squeeze(1)
     first, second, third = field.colour_mlp[0], field.colour_mlp[2], field.colour_mlp[4]
     network, kept = shader.network(field.appearance_basis.weight, first.weight, first.bias, second.weight,
                                    second.bias, third.weight, third.bias)
-    count, rays = shaded.numel(), accumulated.shape[0]
-    inputs = network.apad + shader.encoding
-    mean, x1 = accumulated.new_empty((count, network.features)), accumulated.new_empty((count, inputs))
-    hidden1, hidden2 = accumulated.new_empty((count, COMPILED_WIDTH)), accumulated.new_empty((count, COMPILED_WIDTH))
-    colour, rgb, grad_rgb = accumulated.new_empty((count, 3)), accumulated.new_zeros((rays, 3)), torch.randn(rays, 3)
-    threads = torch.get_num_threads()
-    size = int(shader.library.shade_training_gradient_floats(ctypes.byref(network)))
-    sums, scratch = accumulated.new_zeros(size), accumulated.new_zeros(max(threads - 1, 1) * size)
-    grad_accumulated, grad_coloured_weight, grad_weight = (accumulated.new_zeros((rays, network.features)),
-                                                           accumulated.new_zeros(rays), accumulated.new_zeros(rays))
+    grad_rgb = torch.randn(accumulated.shape[0], 3)
 
     def run() -> None:
-        shader.call("shade_rays_training_forward", ctypes.byref(network), accumulated, coloured_weight, weight,
-                    directions, shaded, ctypes.c_int64(count), mean, x1, hidden1, hidden2, colour, rgb,
-                    ctypes.c_int64(threads))
-        sums.zero_()
-        shader.call("shade_rays_training_backward", ctypes.byref(network), coloured_weight, weight, shaded,
-                    ctypes.c_int64(count), ctypes.c_int64(rays), mean, x1, hidden1, hidden2, colour, grad_rgb, sums,
-                    scratch, grad_accumulated, grad_coloured_weight, grad_weight, ctypes.c_int64(threads))
+        _, rows = shader.forward_pass(network, accumulated, coloured_weight, weight, directions, shaded)
+        shader.backward_pass(network, coloured_weight, weight, shaded, rows, grad_rgb, accumulated.shape[0])
     run.kept = kept  # the prepared weights live as long as the pass
     return run
 

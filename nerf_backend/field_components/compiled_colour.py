@@ -283,42 +283,20 @@ class _ShadeRaysTrainingFunction(torch.autograd.Function):
     def forward(ctx, accumulated, coloured_weight, weight, directions, shaded, basis, w1, b1, w2, b2, w3, b3,
                 shader):  # noqa: D102 (autograd's)
         network, kept = shader.network(basis, w1, b1, w2, b2, w3, b3)
-        accumulated, coloured_weight, weight, directions = (
-            t.detach().float().contiguous() for t in (accumulated, coloured_weight, weight, directions))
+        coloured_weight, weight = (t.detach().float().contiguous() for t in (coloured_weight, weight))
         shaded = shaded.to(torch.int64).contiguous()
-        count, inputs = shaded.numel(), network.apad + shader.encoding
-        # What backward keeps, in one allocation: the rays' mean features, layer inputs, two hidden layers, colours.
-        widths = (network.features, inputs, COMPILED_WIDTH, COMPILED_WIDTH, 3)
-        mean, x1, hidden1, hidden2, colour = (
-            part.view(count, width) for part, width in
-            zip(accumulated.new_empty(count * sum(widths)).split([count * w for w in widths]), widths))
-        rgb = accumulated.new_zeros((accumulated.shape[0], 3))
-        if count:
-            shader.call("shade_rays_training_forward", ctypes.byref(network), accumulated, coloured_weight, weight,
-                        directions, shaded, ctypes.c_int64(count), mean, x1, hidden1, hidden2, colour, rgb,
-                        ctypes.c_int64(torch.get_num_threads()))
-        ctx.save_for_backward(coloured_weight, weight, shaded, mean, x1, hidden1, hidden2, colour)
+        rgb, rows = shader.forward_pass(network, accumulated, coloured_weight, weight, directions, shaded)
+        ctx.save_for_backward(coloured_weight, weight, shaded, *rows)
         ctx.network, ctx.kept, ctx.shader, ctx.rays = network, kept, shader, accumulated.shape[0]
         return rgb
 
     @staticmethod
     def backward(ctx, grad_rgb):  # noqa: D102 (autograd's)
-        coloured_weight, weight, shaded, mean, x1, hidden1, hidden2, colour = ctx.saved_tensors
+        coloured_weight, weight, shaded, *rows = ctx.saved_tensors
         network, shader = ctx.network, ctx.shader
-        count, features, apad = shaded.numel(), network.features, network.apad
-        threads = torch.get_num_threads()
-        size = int(shader.library.shade_training_gradient_floats(ctypes.byref(network)))
-        sums = mean.new_zeros(size)
-        if count:  # the kernel writes the rays' gradients whole, zeros included
-            grad_accumulated, grad_coloured_weight = mean.new_empty((ctx.rays, features)), mean.new_empty(ctx.rays)
-            grad_weight, scratch = mean.new_empty(ctx.rays), mean.new_empty(max(threads - 1, 1) * size)
-            shader.call("shade_rays_training_backward", ctypes.byref(network), coloured_weight, weight, shaded,
-                        ctypes.c_int64(count), ctypes.c_int64(ctx.rays), mean, x1, hidden1, hidden2, colour,
-                        grad_rgb.float().contiguous(), sums, scratch, grad_accumulated, grad_coloured_weight,
-                        grad_weight, ctypes.c_int64(threads))
-        else:
-            grad_accumulated, grad_coloured_weight = mean.new_zeros((ctx.rays, features)), mean.new_zeros(ctx.rays)
-            grad_weight = mean.new_zeros(ctx.rays)
+        features, apad = network.features, network.apad
+        grad_accumulated, grad_coloured_weight, grad_weight, sums = shader.backward_pass(
+            network, coloured_weight, weight, shaded, rows, grad_rgb, ctx.rays)
         inputs, hidden, appearance = apad + shader.encoding, COMPILED_WIDTH, shader.appearance
         parts, at = [], 0
         for part in (inputs * hidden, hidden, hidden * hidden, hidden, 3 * hidden, _B3_FLOATS, features * apad):
@@ -361,6 +339,38 @@ class CompiledShadeTraining:
         return _ShadeRaysTrainingFunction.apply(accumulated, coloured_weight, weight, directions, shaded,
                                                 field.appearance_basis.weight, first.weight, first.bias,
                                                 second.weight, second.bias, third.weight, third.bias, self)
+
+    def forward_pass(self, network: _ShadeTrainingNetwork, accumulated: Tensor, coloured_weight: Tensor,
+                     weight: Tensor, directions: Tensor, shaded: Tensor) -> tuple[Tensor, tuple[Tensor, ...]]:
+        """The compiled forward over ``network`` (``network()``'s): ``rgb [R, 3]`` and the rows its
+        backward reads (each shaded ray's mean features, layer inputs, two hidden layers and
+        colour, in one allocation); ``shaded`` int64, the others float32."""
+        accumulated, coloured_weight, weight, directions = (
+            t.detach().float().contiguous() for t in (accumulated, coloured_weight, weight, directions))
+        count = shaded.numel()
+        widths = (network.features, network.apad + self.encoding, COMPILED_WIDTH, COMPILED_WIDTH, 3)
+        rows = tuple(part.view(count, width) for part, width in
+                     zip(accumulated.new_empty(count * sum(widths)).split([count * w for w in widths]), widths))
+        rgb = accumulated.new_zeros((accumulated.shape[0], 3))
+        self.call("shade_rays_training_forward", ctypes.byref(network), accumulated, coloured_weight, weight,
+                  directions, shaded, ctypes.c_int64(count), *rows, rgb, ctypes.c_int64(torch.get_num_threads()))
+        return rgb, rows
+
+    def backward_pass(self, network: _ShadeTrainingNetwork, coloured_weight: Tensor, weight: Tensor, shaded: Tensor,
+                      rows: tuple[Tensor, ...], grad_rgb: Tensor, rays: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The compiled backward from ``grad_rgb [rays, 3]`` over ``forward_pass``'s rows: the
+        gradients of the accumulated features, of both weights (the kernel writes them whole,
+        zeros included), and the parameters' summed gradients in the kernel's layout."""
+        threads = torch.get_num_threads()
+        size = int(self.library.shade_training_gradient_floats(ctypes.byref(network)))
+        mean = rows[0]
+        sums, scratch = mean.new_zeros(size), mean.new_empty(max(threads - 1, 1) * size)
+        grad_accumulated, grad_coloured_weight = mean.new_empty((rays, network.features)), mean.new_empty(rays)
+        grad_weight = mean.new_empty(rays)
+        self.call("shade_rays_training_backward", ctypes.byref(network), coloured_weight, weight, shaded,
+                  ctypes.c_int64(shaded.numel()), ctypes.c_int64(rays), *rows, grad_rgb.float().contiguous(), sums,
+                  scratch, grad_accumulated, grad_coloured_weight, grad_weight, ctypes.c_int64(threads))
+        return grad_accumulated, grad_coloured_weight, grad_weight, sums
 
     def network(self, basis: Tensor, w1: Tensor, b1: Tensor, w2: Tensor, b2: Tensor, w3: Tensor,
                 b3: Tensor) -> tuple[_ShadeTrainingNetwork, list[Tensor]]:
